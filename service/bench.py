@@ -1,0 +1,150 @@
+"""``slamtka bench accuracy``: the simulation study of DESIGN.md section 5.
+
+Each run simulates a fresh case (2 px contour noise by default, initial-state noise at the
+chosen level: rotation SD 0.1 rad x level, translation SD 20 mm x level), solves it and
+records the absolute CTR/STR errors against the simulated truth, the reported 1-sigma, the
+time and the iterations. Runs are spread over worker processes. Writes ``results.json``,
+``results.md`` (table) and ``errors.png`` (box plots) and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from solver.plan import Plan
+from solver.simulate import SimulationConfig, simulate_case
+from solver.slam import SolverConfig, solve_joint
+
+ROT_SD_PER_LEVEL_RAD = 0.1
+TRANS_SD_PER_LEVEL_MM = 20.0
+SUCCESS_DEG = 1.0
+
+_worker_plan: Plan | None = None
+
+
+def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None) -> None:
+    global _worker_plan
+    _worker_plan = Plan.phantom() if tibia is None else Plan.from_meshes(tibia, fibula, landmarks)
+    _worker_plan.bone_model()
+    _worker_plan.pin_model()
+
+
+def _run_one(job: tuple[int, int, float]) -> dict:
+    level, seed, noise_px = job
+    plan = _worker_plan
+    config = SimulationConfig(noise_px=noise_px, seed=seed,
+                              init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
+                              init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level)
+    case = simulate_case(plan, config)
+    start = time.perf_counter()
+    outcome = solve_joint(plan, case.views, case.initial, SolverConfig())
+    seconds = time.perf_counter() - start
+    row = {"level": level, "seed": seed, "time_s": seconds, "iterations": outcome.iterations,
+           "status": outcome.status, "reason": outcome.reason,
+           "ctr_abs_deg": None, "str_abs_deg": None, "ctr_sigma_deg": None, "str_sigma_deg": None}
+    if outcome.status == "measured":
+        sigma = np.degrees(np.sqrt(np.diag(outcome.angle_cov)))
+        row.update(ctr_abs_deg=abs(float(np.degrees(outcome.plane.ctr)) - case.truth_ctr_deg),
+                   str_abs_deg=abs(float(np.degrees(outcome.plane.str_)) - case.truth_str_deg),
+                   ctr_sigma_deg=float(sigma[0]), str_sigma_deg=float(sigma[1]))
+    return row
+
+
+def _stats(values: list[float | None]) -> tuple[float, float]:
+    v = np.array([x for x in values if x is not None], float)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(v)), float(np.percentile(v, 95))
+
+
+def _table(results: list[dict]) -> str:
+    lines = ["| method | level | rot SD (rad) | trans SD (mm) | runs | measured | median CTR | p95 CTR "
+             "| median STR | p95 STR | success (<=1 deg) | within 1 sigma | within 2 sigma "
+             "| median time (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        mc, pc = _stats(r["ctr_abs_deg"])
+        ms, ps = _stats(r["str_abs_deg"])
+        ok = [c is not None and c <= SUCCESS_DEG and s <= SUCCESS_DEG
+              for c, s in zip(r["ctr_abs_deg"], r["str_abs_deg"])]
+        pairs = [(e, s) for key in ("ctr", "str")
+                 for e, s in zip(r[f"{key}_abs_deg"], r[f"{key}_sigma_deg"]) if e is not None]
+        within1 = np.mean([e <= s for e, s in pairs]) if pairs else float("nan")
+        within2 = np.mean([e <= 2 * s for e, s in pairs]) if pairs else float("nan")
+        lines.append(
+            f"| {r['method']} | {r['level']} | {r['rot_sd_rad']:.1f} | {r['trans_sd_mm']:.0f} "
+            f"| {r['runs']} | {r['converged']} | {mc:.3f} | {pc:.3f} | {ms:.3f} | {ps:.3f} "
+            f"| {100 * np.mean(ok):.0f}% | {100 * within1:.0f}% | {100 * within2:.0f}% "
+            f"| {np.median(r['time_s']):.2f} |")
+    return "\n".join(lines)
+
+
+def _plot(results: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, key, title in ((axes[0], "ctr_abs_deg", "|CTR error|"), (axes[1], "str_abs_deg", "|STR error|")):
+        data = [[x for x in r[key] if x is not None] or [np.nan] for r in results]
+        ax.boxplot(data, tick_labels=[f"{r['method']}\nL{r['level']}" for r in results])
+        ax.set_title(title)
+        ax.set_ylabel("degrees")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run_accuracy(args: argparse.Namespace) -> int:
+    args.out.mkdir(parents=True, exist_ok=True)
+    jobs = [(level, args.seed + 1000 * level + run, args.noise_px)
+            for level in args.levels for run in range(args.runs)]
+    with ProcessPoolExecutor(args.workers, initializer=_init_worker,
+                             initargs=(args.tibia, args.fibula, args.landmarks)) as pool:
+        rows = list(pool.map(_run_one, jobs))
+    results = []
+    for level in args.levels:
+        mine = [r for r in rows if r["level"] == level]
+        results.append({
+            "method": "slam", "level": level,
+            "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
+            "runs": len(mine), "converged": sum(r["status"] == "measured" for r in mine),
+            **{key: [r[key] for r in mine] for key in
+               ("ctr_abs_deg", "str_abs_deg", "ctr_sigma_deg", "str_sigma_deg", "time_s", "iterations")},
+            "refusals": [r["reason"] for r in mine if r["status"] != "measured"],
+        })
+    protocol = {"noise_px": args.noise_px, "runs_per_level": args.runs, "levels": list(args.levels),
+                "rot_sd_per_level_rad": ROT_SD_PER_LEVEL_RAD,
+                "trans_sd_per_level_mm": TRANS_SD_PER_LEVEL_MM,
+                "model": "phantom" if args.tibia is None else str(args.tibia), "seed": args.seed}
+    (args.out / "results.json").write_text(json.dumps({"protocol": protocol, "results": results},
+                                                      indent=2))
+    table = _table(results)
+    (args.out / "results.md").write_text(f"# Accuracy study\n\n{json.dumps(protocol)}\n\n{table}\n")
+    _plot(results, args.out / "errors.png")
+    print(table)
+    return 0
+
+
+def add_bench_parser(sub: argparse._SubParsersAction) -> None:
+    bench = sub.add_parser("bench", help="benchmarks that print figures")
+    kinds = bench.add_subparsers(dest="bench", required=True)
+    p = kinds.add_parser("accuracy", help="the simulation study of DESIGN.md section 5")
+    p.add_argument("--runs", type=int, default=10)
+    p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=[1, 2, 3, 4, 5])
+    p.add_argument("--noise-px", type=float, default=2.0)
+    p.add_argument("--tibia", type=Path)
+    p.add_argument("--fibula", type=Path)
+    p.add_argument("--landmarks", type=Path)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True)
+    p.set_defaults(func=run_accuracy)

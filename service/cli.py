@@ -1,0 +1,164 @@
+"""The ``slamtka`` command line.
+
+Sub-commands: ``simulate`` (write a simulated case folder), ``solve`` (measure a case
+folder), ``demo`` (simulate and solve the built-in phantom), ``bench accuracy`` (the
+accuracy study over many simulated cases, printing a table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+from pathlib import Path
+
+from solver.case import load_case, write_case
+from solver.plan import Plan
+from solver.result import result_document
+from solver.simulate import SimulationConfig, simulate_case
+from solver.slam import SolverConfig, solve_joint
+
+from .bench import add_bench_parser
+
+log = logging.getLogger("slamtka")
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tibia", type=Path, help="tibia mesh (STL/PLY/OBJ); default: built-in phantom")
+    p.add_argument("--fibula", type=Path, help="fibula mesh (optional, with --tibia)")
+    p.add_argument("--landmarks", type=Path, help="landmarks JSON (required with --tibia)")
+    p.add_argument("--side", choices=("left", "right"), default="right")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    if args.tibia is None:
+        plan = Plan.phantom(args.side)
+    elif args.landmarks is None:
+        raise ValueError("--tibia needs --landmarks (knee centre, ankle centre, anterior, side)")
+    else:
+        plan = Plan.from_meshes(args.tibia, args.fibula, args.landmarks)
+    config = SimulationConfig(view_angles_deg=args.views, noise_px=args.noise_px, seed=args.seed,
+                              init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd)
+    case = simulate_case(plan, config)
+    truth = {
+        "ctr_deg": case.truth_ctr_deg,
+        "str_deg": case.truth_str_deg,
+        "T_cam_tibia": {v.view_id: T.to_json() for v, T in zip(case.views, case.truth_T_cam_tibia)},
+        "T_tibia_pin": [T.to_json() for T in case.truth_T_tibia_pin],
+        "simulation": {"seed": args.seed, "noise_px": args.noise_px, "views_deg": list(args.views),
+                       "init_rot_sd_rad": args.init_rot_sd, "init_trans_sd_mm": args.init_trans_sd},
+    }
+    write_case(args.out, f"sim-{args.seed}", plan, case.views, case.initial, "simulated-carm",
+               truth)
+    print(f"wrote simulated case to {args.out} (true CTR {case.truth_ctr_deg:+.2f} deg, "
+          f"STR {case.truth_str_deg:+.2f} deg)")
+    return 0
+
+
+def _summary(doc: dict) -> str:
+    lines = [f"case {doc['case_id']}: {doc['status'].replace('_', ' ')}"]
+    if doc["angles"] is None:
+        lines.append(f"  reason: {doc['reason']}")
+    else:
+        a, d, t = doc["angles"], doc["deviation"], doc["target"]
+        lines += [
+            f"  CTR {a['ctr_deg']:+6.2f} deg +- {a['ctr_sigma_deg']:.2f}  (plan {t['ctr_deg']:+.1f}, "
+            f"deviation {d['ctr_deg']:+.2f})   positive = varus",
+            f"  STR {a['str_deg']:+6.2f} deg +- {a['str_sigma_deg']:.2f}  (plan {t['str_deg']:+.1f}, "
+            f"deviation {d['str_deg']:+.2f})   positive = posterior slope",
+            f"  within +-{t['tolerance_deg']:.1f} deg of plan: {'yes' if d['within_tolerance'] else 'NO'}",
+        ]
+    s = doc["solver"]
+    rms = ", ".join(f"{k} {v:.2f}" for k, v in s["residual_rms_sigma"].items())
+    lines.append(f"  solver: {s['iterations']} iterations, {s['seconds']:.2f} s, "
+                 f"{s['convergence_reason']}; residual RMS (sigmas): {rms or 'n/a'}")
+    return "\n".join(lines)
+
+
+def _truth_line(folder: Path, doc: dict) -> str | None:
+    path = folder / "ground_truth.json"
+    if not path.is_file() or doc["angles"] is None:
+        return None
+    truth = json.loads(path.read_text())
+    e_ctr = doc["angles"]["ctr_deg"] - truth["ctr_deg"]
+    e_str = doc["angles"]["str_deg"] - truth["str_deg"]
+    return (f"  simulated truth: CTR {truth['ctr_deg']:+.2f}, STR {truth['str_deg']:+.2f} deg; "
+            f"error CTR {e_ctr:+.3f}, STR {e_str:+.3f} deg")
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    case = load_case(args.case_dir)
+    outcome = solve_joint(case.plan, case.views, case.initial, SolverConfig())
+    doc = result_document(case.case_id, outcome, case.plan, case.views, case.calibration_id, "slam")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=2))
+    print(_summary(doc))
+    truth = _truth_line(args.case_dir, doc)
+    if truth:
+        print(truth)
+    return 0 if doc["status"] == "measured" else 3
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    folder = args.out or Path(tempfile.mkdtemp(prefix="slamtka-demo-"))
+    print("slamtka demo: simulate two C-arm views of the built-in phantom, then measure")
+    sim = argparse.Namespace(tibia=None, fibula=None, landmarks=None, side="right", views=(-30.0, 30.0),
+                             noise_px=2.0, seed=args.seed, init_rot_sd=0.1, init_trans_sd=20.0,
+                             out=folder)
+    cmd_simulate(sim)
+    return cmd_solve(argparse.Namespace(case_dir=folder, json=folder / "result.json"))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="slamtka", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("simulate", help="write a simulated case folder")
+    p.add_argument("--out", type=Path, required=True)
+    _add_model_options(p)
+    p.add_argument("--views", type=_floats, default=(-30.0, 30.0),
+                   help="view angles about the leg axis, degrees (0 = AP)")
+    p.add_argument("--noise-px", type=float, default=2.0)
+    p.add_argument("--init-rot-sd", type=float, default=0.1, help="initial rotation error SD, rad")
+    p.add_argument("--init-trans-sd", type=float, default=20.0, help="initial translation error SD, mm")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("solve", help="measure the resection plane of a case folder")
+    p.add_argument("case_dir", type=Path)
+    p.add_argument("--json", type=Path, help="write the result document here")
+    p.set_defaults(func=cmd_solve)
+
+    p = sub.add_parser("demo", help="simulate and solve the built-in phantom")
+    p.add_argument("--out", type=Path, help="case folder (default: a temporary folder)")
+    p.add_argument("--seed", type=int, default=1)
+    p.set_defaults(func=cmd_demo)
+
+    add_bench_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return args.func(args)
+    except (ValueError, RuntimeError) as exc:
+        print(f"slamtka: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,316 @@
+"""A generic Levenberg-Marquardt optimiser over poses and 3D points (factor-graph style).
+
+Variables are rigid poses (6 degrees of freedom each, right increments, see ``geometry``)
+and 3D points (3 each). Energy terms are small objects that return whitened residuals and
+their Jacobians for the variables they touch (:class:`Linearization`); the optimiser knows
+nothing about tibias or pins. Each point touches few poses, so points are eliminated with
+the Schur complement and only a small dense system in the poses is solved: the cost of an
+iteration grows linearly with the number of points. Robust losses are applied by
+iteratively reweighted least squares.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+from .geometry import Pose
+
+__all__ = [
+    "State",
+    "Linearization",
+    "RobustLoss",
+    "Term",
+    "LMOptions",
+    "IterationInfo",
+    "SolveReport",
+    "levenberg_marquardt",
+    "pose_covariance",
+]
+
+# Regularisation of each point's 3x3 block relative to its trace: a contour point's depth
+# along its grazing ray is unobservable to first order, so its block is rank deficient.
+_POINT_REGULARISATION = 1e-6
+
+
+@dataclass(frozen=True)
+class State:
+    """All variables: poses (list) and points (X, 3)."""
+
+    poses: tuple[Pose, ...]
+    points: np.ndarray
+
+    def retract(self, d_poses: np.ndarray, d_points: np.ndarray) -> State:
+        poses = tuple(p.retract(d) for p, d in zip(self.poses, d_poses.reshape(-1, 6)))
+        return State(poses, self.points + d_points)
+
+
+@dataclass(frozen=True)
+class RobustLoss:
+    """Robust loss on the squared norm ``s`` of a whitened residual block.
+
+    ``kind`` is ``"huber"``, ``"cauchy"`` or ``"l2"``; ``scale`` in units of sigma.
+    """
+
+    kind: str = "huber"
+    scale: float = 2.0
+
+    def rho(self, s: np.ndarray) -> np.ndarray:
+        c2 = self.scale**2
+        if self.kind == "l2":
+            return s
+        if self.kind == "huber":
+            r = np.sqrt(s)
+            return np.where(r <= self.scale, s, 2.0 * self.scale * r - c2)
+        if self.kind == "cauchy":
+            return c2 * np.log1p(s / c2)
+        raise ValueError(f"unknown robust loss {self.kind!r}")
+
+    def weight(self, s: np.ndarray) -> np.ndarray:
+        """IRLS weight ``rho'(s)``."""
+        if self.kind == "l2":
+            return np.ones_like(s)
+        if self.kind == "huber":
+            r = np.sqrt(s)
+            return np.where(r <= self.scale, 1.0, self.scale / np.maximum(r, 1e-12))
+        return 1.0 / (1.0 + s / self.scale**2)
+
+
+@dataclass
+class Linearization:
+    """Whitened residuals (N, m) of one term with the Jacobians of the variables they touch."""
+
+    residuals: np.ndarray
+    pose_jacobians: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    point_jacobian: tuple[np.ndarray, np.ndarray] | None = None
+
+
+class Term(Protocol):
+    """One energy term: ``weight * sum(loss.rho(|r_i|^2))``."""
+
+    name: str
+    weight: float
+    loss: RobustLoss
+
+    def linearize(self, state: State, jacobians: bool = True) -> Linearization: ...
+
+
+@dataclass(frozen=True)
+class LMOptions:
+    max_iterations: int = 40
+    relative_tolerance: float = 1e-6  # stop when the cost falls by less than this fraction
+    step_tolerance: float = 1e-7  # ... or the pose step (rad / mm) is this small
+    initial_lambda: float = 1e-3
+    max_lambda: float = 1e8
+
+
+@dataclass
+class IterationInfo:
+    """What the optimiser reports after every accepted or rejected step."""
+
+    iteration: int
+    cost: float
+    term_costs: dict[str, float]
+    lambda_: float
+    accepted: bool
+    state: State
+
+
+@dataclass
+class SolveReport:
+    converged: bool
+    reason: str
+    iterations: int
+    cost: float
+    term_costs: dict[str, float]
+    seconds: float
+    history: list[float]
+
+
+def _term_cost(term: Term, lin: Linearization) -> float:
+    s = np.sum(lin.residuals**2, axis=1)
+    return float(term.weight * np.sum(term.loss.rho(s)))
+
+
+def _evaluate(terms: list[Term], state: State, jacobians: bool):
+    lins = [t.linearize(state, jacobians) for t in terms]
+    costs = {}
+    for term, lin in zip(terms, lins):
+        costs[term.name] = costs.get(term.name, 0.0) + _term_cost(term, lin)
+    return lins, costs
+
+
+@dataclass
+class NormalEquations:
+    """Gauss-Newton system ``H d = -g`` split into pose and point blocks."""
+
+    H_pp: np.ndarray  # (6P, 6P)
+    g_p: np.ndarray  # (6P,)
+    H_xx: np.ndarray  # (X, 3, 3)
+    g_x: np.ndarray  # (X, 3)
+    pair_point: np.ndarray  # (K,) point of each (point, pose) coupling block
+    pair_pose: np.ndarray  # (K,) pose of each block
+    H_px: np.ndarray  # (K, 6, 3)
+
+
+def build_normal_equations(
+    terms: list[Term], lins: list[Linearization], n_poses: int, n_points: int
+) -> NormalEquations:
+    P = n_poses
+    H_blocks = np.zeros((P, P, 6, 6))
+    g_blocks = np.zeros((P, 6))
+    H_xx = np.zeros((n_points, 3, 3))
+    g_x = np.zeros((n_points, 3))
+    coupling_keys, coupling_vals = [], []
+    for term, lin in zip(terms, lins):
+        s = np.sum(lin.residuals**2, axis=1)
+        w = term.weight * term.loss.weight(s)  # (N,)
+        wr = w[:, None] * lin.residuals  # (N, m)
+        for a_idx, Ja in lin.pose_jacobians:
+            np.add.at(g_blocks, a_idx, np.einsum("nmi,nm->ni", Ja, wr))
+            for b_idx, Jb in lin.pose_jacobians:
+                np.add.at(H_blocks, (a_idx, b_idx), np.einsum("nmi,n,nmj->nij", Ja, w, Jb))
+        if lin.point_jacobian is not None:
+            x_idx, Jx = lin.point_jacobian
+            np.add.at(H_xx, x_idx, np.einsum("nmi,n,nmj->nij", Jx, w, Jx))
+            np.add.at(g_x, x_idx, np.einsum("nmi,nm->ni", Jx, wr))
+            for a_idx, Ja in lin.pose_jacobians:
+                coupling_keys.append(x_idx * P + a_idx)
+                coupling_vals.append(np.einsum("nmi,n,nmj->nij", Ja, w, Jx))
+    if coupling_keys:
+        keys = np.concatenate(coupling_keys)
+        uniq, inverse = np.unique(keys, return_inverse=True)
+        H_px = np.zeros((len(uniq), 6, 3))
+        np.add.at(H_px, inverse, np.concatenate(coupling_vals))
+    else:
+        uniq, H_px = np.zeros(0, np.int64), np.zeros((0, 6, 3))
+    return NormalEquations(
+        H_pp=H_blocks.transpose(0, 2, 1, 3).reshape(6 * P, 6 * P),
+        g_p=g_blocks.reshape(-1),
+        H_xx=H_xx,
+        g_x=g_x,
+        pair_point=uniq // P,
+        pair_pose=uniq % P,
+        H_px=H_px,
+    )
+
+
+def _reduced_system(
+    ne: NormalEquations, n_poses: int, lam: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Schur complement in the poses: returns (S, rhs, V_inv, H_px padded per point)."""
+    P = n_poses
+    V = ne.H_xx.copy()
+    diag = np.einsum("xii->xi", V)
+    reg = _POINT_REGULARISATION * np.maximum(diag.sum(axis=1), 1e-9)
+    V[:, np.arange(3), np.arange(3)] += lam * diag + reg[:, None]
+    V_inv = np.linalg.inv(V)
+
+    # Pad each point's coupling blocks to a fixed count; the dummy pose P is dropped later.
+    X = len(V)
+    first = np.searchsorted(ne.pair_point, np.arange(X))
+    slot = np.arange(len(ne.pair_point)) - first[ne.pair_point]
+    k_max = int(slot.max()) + 1 if len(slot) else 1
+    W = np.zeros((X, k_max, 6, 3))
+    pose_of = np.full((X, k_max), P)
+    W[ne.pair_point, slot] = ne.H_px
+    pose_of[ne.pair_point, slot] = ne.pair_pose
+
+    Y = W @ V_inv[:, None]  # (X, k, 6, 3)
+    reduction = np.einsum("xaij,xbkj->xabik", Y, W)  # (X, k, k, 6, 6)
+    blocks = np.zeros((P + 1, P + 1, 6, 6))
+    np.add.at(blocks, (pose_of[:, :, None], pose_of[:, None, :]), reduction)
+    g_shift = np.zeros((P + 1, 6))
+    np.add.at(g_shift, pose_of, np.einsum("xaij,xj->xai", Y, ne.g_x))
+
+    S = ne.H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
+    rhs = -ne.g_p + g_shift[:P].reshape(-1)
+    return S, rhs, V_inv, (W, pose_of)
+
+
+def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float):
+    """LM step (pose increments (6P,), point increments (X, 3)) for damping ``lam``."""
+    S, rhs, V_inv, (W, pose_of) = _reduced_system(ne, n_poses, lam)
+    S_free = S[np.ix_(free, free)]
+    S_free[np.diag_indices_from(S_free)] += lam * np.diag(S_free) + 1e-9
+    d_p = np.zeros(6 * n_poses)
+    d_p[free] = np.linalg.solve(S_free, rhs[free])
+    d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])
+    coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])  # sum_a H_xp d_p
+    d_x = -np.einsum("xij,xj->xi", V_inv, ne.g_x + coupled)
+    return d_p, d_x
+
+
+def levenberg_marquardt(
+    terms: list[Term],
+    state: State,
+    fixed_dofs: np.ndarray | None = None,
+    options: LMOptions = LMOptions(),
+    callback: Callable[[IterationInfo], None] | None = None,
+) -> tuple[State, SolveReport]:
+    """Minimise the robust energy of ``terms`` from ``state``.
+
+    ``fixed_dofs`` is a boolean mask over the 6P pose parameters that must not move (gauge
+    directions such as a pin's roll about its own axis).
+    """
+    start = time.perf_counter()
+    P, X = len(state.poses), len(state.points)
+    free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    lins, costs = _evaluate(terms, state, jacobians=True)
+    cost = sum(costs.values())
+    history = [cost]
+    lam = options.initial_lambda
+    converged, reason, iteration = False, "maximum iterations reached", 0
+    for iteration in range(1, options.max_iterations + 1):
+        ne = build_normal_equations(terms, lins, P, X)
+        accepted = False
+        while lam <= options.max_lambda:
+            d_p, d_x = _solve_step(ne, P, free, lam)
+            candidate = state.retract(d_p, d_x)
+            cand_costs = _evaluate(terms, candidate, jacobians=False)[1]
+            cand_cost = sum(cand_costs.values())
+            if np.isfinite(cand_cost) and cand_cost < cost:
+                accepted = True
+                break
+            lam *= 10.0
+        if not accepted:
+            converged, reason = True, "no further decrease possible (local minimum)"
+            break
+        decrease = (cost - cand_cost) / max(cost, 1e-12)
+        state, cost, costs = candidate, cand_cost, cand_costs
+        history.append(cost)
+        lam = max(lam / 10.0, 1e-9)
+        if callback is not None:
+            callback(IterationInfo(iteration, cost, dict(costs), lam, True, state))
+        if decrease < options.relative_tolerance:
+            converged, reason = True, "relative cost decrease below tolerance"
+            break
+        if np.max(np.abs(d_p)) < options.step_tolerance:
+            converged, reason = True, "pose step below tolerance"
+            break
+        lins, costs = _evaluate(terms, state, jacobians=True)
+        cost = sum(costs.values())
+    return state, SolveReport(converged, reason, iteration, cost, costs,
+                              time.perf_counter() - start, history)
+
+
+def pose_covariance(
+    terms: list[Term], state: State, fixed_dofs: np.ndarray | None = None
+) -> np.ndarray:
+    """Marginal covariance (6P, 6P) of the poses at ``state`` (points marginalised).
+
+    The Schur complement of the Gauss-Newton information is exactly the marginal
+    information of the poses; fixed (gauge) directions get zero variance. Residuals are
+    whitened, so this is in the units of the poses' increments.
+    """
+    P, X = len(state.poses), len(state.points)
+    lins, _ = _evaluate(terms, state, jacobians=True)
+    ne = build_normal_equations(terms, lins, P, X)
+    S = _reduced_system(ne, P, 0.0)[0]
+    free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    cov = np.zeros((6 * P, 6 * P))
+    cov[np.ix_(free, free)] = np.linalg.pinv(S[np.ix_(free, free)], hermitian=True)
+    return cov

@@ -1,0 +1,206 @@
+"""The pre-operative plan and the rigid models built from it.
+
+A plan (one per patient and side) holds the tibia surface (with the fibula), its landmarks,
+the pin model and the planned resection angles with their tolerance. Everything derived from
+it that is expensive (signed distance fields) is computed once and cached beside the plan,
+never during surgery.
+
+Plan folder::
+
+    plan.json        format, patient, side, mesh files with units, landmarks, pin, target
+    tibia.stl ...    meshes named in plan.json
+    cache/           signed distance fields keyed by mesh hash (safe to delete)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import trimesh
+
+from .anatomy import Landmarks
+from .meshes import load_mesh
+from .phantom import build_phantom
+from .pin import PinSpec, build_pin
+from .sdf import SignedDistanceField
+from .silhouette import ContourGenerator
+
+__all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT"]
+
+PLAN_FORMAT = "slamtka-plan/1"
+BONE_EXTENT_MM = (40.0, 600.0)
+PIN_EXTENT_MM = (20.0, 300.0)
+# Silhouettes are traced on a simplified copy of a large mesh: the outline moves by far less
+# than a pixel, and the cost per iteration stays low.
+_SILHOUETTE_MAX_FACES = 6000
+
+
+@dataclass(frozen=True)
+class Target:
+    """Planned resection angles and the tolerance on each (degrees)."""
+
+    ctr_deg: float = 0.0
+    str_deg: float = 3.0
+    tolerance_deg: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.tolerance_deg <= 15.0:
+            raise ValueError(f"tolerance {self.tolerance_deg} deg is outside (0, 15]")
+        if abs(self.ctr_deg) > 20.0 or abs(self.str_deg) > 20.0:
+            raise ValueError("planned CTR/STR beyond 20 deg are not plausible")
+
+
+@dataclass
+class RigidModel:
+    """A rigid body as the solver sees it: signed distance field and silhouette topology."""
+
+    name: str
+    meshes: list[trimesh.Trimesh]
+    sdf: SignedDistanceField
+    contour: ContourGenerator
+
+    @staticmethod
+    def build(
+        name: str,
+        meshes: list[trimesh.Trimesh],
+        sdf_spacing_mm: float,
+        cache_dir: Path | None,
+    ) -> RigidModel:
+        margin = 8.0 * sdf_spacing_mm
+        sdf = SignedDistanceField.cached(meshes, sdf_spacing_mm, margin, cache_dir)
+        combined = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        if len(combined.faces) > _SILHOUETTE_MAX_FACES:
+            combined = combined.simplify_quadric_decimation(face_count=_SILHOUETTE_MAX_FACES)
+        return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined))
+
+
+@dataclass
+class Plan:
+    """Everything known before surgery about one patient's tibia and the pins."""
+
+    tibia: trimesh.Trimesh
+    fibula: trimesh.Trimesh | None
+    landmarks: Landmarks
+    pin_mesh: trimesh.Trimesh
+    pin_spec: PinSpec | None  # None when a custom pin mesh replaces the parametric pin
+    target: Target = field(default_factory=Target)
+    patient_id: str = "ANON"
+    folder: Path | None = None
+    _models: dict[str, RigidModel] = field(default_factory=dict, repr=False)
+
+    @property
+    def side(self) -> str:
+        return self.landmarks.side
+
+    @property
+    def cache_dir(self) -> Path:
+        """Beside the plan; plans not yet saved share the user's cache (keyed by mesh hash)."""
+        if self.folder is not None:
+            return self.folder / "cache"
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        return Path(base) / "slamtka"
+
+    @staticmethod
+    def phantom(side: str = "right", target: Target = Target()) -> Plan:
+        """The built-in parametric tibia and fibula with the default trocar pin."""
+        bone = build_phantom(side)
+        landmarks = Landmarks(bone.knee_centre, bone.ankle_centre, bone.anterior, side)
+        spec = PinSpec()
+        return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM")
+
+    @staticmethod
+    def from_meshes(tibia: Path, fibula: Path | None, landmarks: Path,
+                    target: Target = Target()) -> Plan:
+        """A plan from mesh files (units detected) and a landmarks JSON, default pin."""
+        spec = PinSpec()
+        return Plan(load_mesh(tibia, BONE_EXTENT_MM),
+                    None if fibula is None else load_mesh(fibula, BONE_EXTENT_MM),
+                    Landmarks.load(landmarks), build_pin(spec), spec, target)
+
+    def bone_meshes(self) -> list[trimesh.Trimesh]:
+        return [self.tibia] if self.fibula is None else [self.tibia, self.fibula]
+
+    def bone_model(self) -> RigidModel:
+        """Tibia (with fibula) model; its signed distance field is cached beside the plan."""
+        if "bone" not in self._models:
+            self._models["bone"] = RigidModel.build("bone", self.bone_meshes(), 1.0, self.cache_dir)
+        return self._models["bone"]
+
+    def pin_model(self) -> RigidModel:
+        if "pin" not in self._models:
+            self._models["pin"] = RigidModel.build("pin", [self.pin_mesh], 0.2, self.cache_dir)
+        return self._models["pin"]
+
+    def pin_length(self) -> float:
+        """Extent of the pin along its axis (pin frame +z), mm."""
+        return float(self.pin_mesh.bounds[1, 2] - self.pin_mesh.bounds[0, 2])
+
+    # -- persistence ---------------------------------------------------------------------
+    def save(self, folder: Path) -> None:
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        self.tibia.export(folder / "tibia.stl")
+        doc: dict = {
+            "format": PLAN_FORMAT,
+            "patient_id": self.patient_id,
+            "side": self.side,
+            "tibia": {"file": "tibia.stl", "units": "mm"},
+            "fibula": None,
+            "landmarks": self.landmarks.to_json(),
+            "target": {
+                "ctr_deg": self.target.ctr_deg,
+                "str_deg": self.target.str_deg,
+                "tolerance_deg": self.target.tolerance_deg,
+            },
+        }
+        if self.fibula is not None:
+            self.fibula.export(folder / "fibula.stl")
+            doc["fibula"] = {"file": "fibula.stl", "units": "mm"}
+        if self.pin_spec is not None:
+            doc["pin"] = {"parametric": self.pin_spec.__dict__}
+        else:
+            self.pin_mesh.export(folder / "pin.stl")
+            doc["pin"] = {"file": "pin.stl", "units": "mm"}
+        (folder / "plan.json").write_text(json.dumps(doc, indent=2))
+        self.folder = folder
+
+    @staticmethod
+    def load(folder: Path) -> Plan:
+        folder = Path(folder)
+        path = folder / "plan.json"
+        if not path.is_file():
+            raise ValueError(f"{folder}: no plan.json (not a plan folder)")
+        try:
+            doc = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        if doc.get("format") != PLAN_FORMAT:
+            raise ValueError(f"{path}: format {doc.get('format')!r} is not {PLAN_FORMAT!r}")
+        try:
+            tibia = load_mesh(folder / doc["tibia"]["file"], BONE_EXTENT_MM,
+                              doc["tibia"].get("units", "auto"))
+            fibula = None
+            if doc.get("fibula"):
+                fibula = load_mesh(folder / doc["fibula"]["file"], BONE_EXTENT_MM,
+                                   doc["fibula"].get("units", "auto"))
+            landmarks = Landmarks.from_json(doc["landmarks"])
+            if landmarks.side != doc["side"]:
+                raise ValueError(f"{path}: plan side {doc['side']!r} differs from landmarks")
+            pin_doc = doc.get("pin", {"parametric": {}})
+            if "file" in pin_doc:
+                pin_spec = None
+                pin_mesh = load_mesh(folder / pin_doc["file"], PIN_EXTENT_MM,
+                                     pin_doc.get("units", "auto"), require_watertight=True)
+            else:
+                pin_spec = PinSpec(**pin_doc.get("parametric", {}))
+                pin_mesh = build_pin(pin_spec)
+            target = Target(**doc.get("target", {}))
+        except KeyError as missing:
+            raise ValueError(f"{path}: missing field {missing}") from None
+        except TypeError as exc:
+            raise ValueError(f"{path}: malformed field ({exc})") from None
+        return Plan(tibia, fibula, landmarks, pin_mesh, pin_spec, target,
+                    str(doc.get("patient_id", "ANON")), folder)

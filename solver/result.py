@@ -1,0 +1,89 @@
+"""The versioned result document of one measurement (JSON).
+
+It states the angles with their sign convention and uncertainty, the deviation from the
+plan, every pose the solver estimated, how the solve went, and the inputs it came from, so
+that a measurement can be reproduced and audited. A refused measurement carries no angles,
+only the reason.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+import numpy as np
+
+from .anatomy import SIGN_CONVENTION
+from .observations import ViewObservation
+from .plan import Plan
+from .sdf import mesh_digest
+from .slam import SolveOutcome
+
+__all__ = ["RESULT_FORMAT", "result_document", "software_version"]
+
+RESULT_FORMAT = "slamtka-result/1"
+
+
+def software_version() -> str:
+    try:
+        return version("slamtka")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _angles(outcome: SolveOutcome, plan: Plan) -> dict:
+    if outcome.status != "measured" or outcome.plane is None or outcome.angle_cov is None:
+        return {"angles": None, "deviation": None}
+    ctr, str_ = float(np.degrees(outcome.plane.ctr)), float(np.degrees(outcome.plane.str_))
+    sigma = np.degrees(np.sqrt(np.diag(outcome.angle_cov)))
+    t = plan.target
+    d_ctr, d_str = ctr - t.ctr_deg, str_ - t.str_deg
+    return {
+        "angles": {"ctr_deg": ctr, "str_deg": str_,
+                   "ctr_sigma_deg": float(sigma[0]), "str_sigma_deg": float(sigma[1])},
+        "deviation": {"ctr_deg": d_ctr, "str_deg": d_str,
+                      "within_tolerance": bool(abs(d_ctr) <= t.tolerance_deg
+                                               and abs(d_str) <= t.tolerance_deg)},
+    }
+
+
+def result_document(case_id: str, outcome: SolveOutcome, plan: Plan,
+                    views: list[ViewObservation], calibration_id: str, method: str) -> dict:
+    plane = None
+    if outcome.plane is not None:
+        R_anat = plan.landmarks.T_tibia_anat().R
+        plane = {"point_tibia_mm": outcome.plane.point.tolist(),
+                 "normal_tibia": outcome.plane.normal.tolist(),
+                 "normal_anatomical": (R_anat.T @ outcome.plane.normal).tolist()}
+    return {
+        "format": RESULT_FORMAT,
+        "software": {"name": "slamtka", "version": software_version()},
+        "case_id": case_id,
+        "status": outcome.status,
+        "reason": outcome.reason or None,
+        "sign_convention": SIGN_CONVENTION,
+        **_angles(outcome, plan),
+        "target": {"ctr_deg": plan.target.ctr_deg, "str_deg": plan.target.str_deg,
+                   "tolerance_deg": plan.target.tolerance_deg},
+        "plane": plane,
+        "poses": {
+            "T_cam_tibia": {v.view_id: T.to_json() for v, T in zip(views, outcome.T_cam_tibia)},
+            "T_tibia_pin": [T.to_json() for T in outcome.T_tibia_pin],
+        },
+        "solver": {
+            "method": method,
+            "converged": outcome.converged,
+            "convergence_reason": outcome.convergence_reason,
+            "iterations": outcome.iterations,
+            "seconds": outcome.seconds,
+            "residual_rms_sigma": outcome.residual_rms,
+            "term_costs": outcome.term_costs,
+            "contour_points": outcome.point_counts,
+        },
+        "inputs": {
+            "views": [v.view_id for v in views],
+            "calibration_id": calibration_id,
+            "plan": {"patient_id": plan.patient_id, "side": plan.side,
+                     "bone_mesh_sha256": mesh_digest(plan.bone_meshes()),
+                     "pin_mesh_sha256": mesh_digest([plan.pin_mesh])},
+        },
+    }

@@ -1,0 +1,159 @@
+"""Simulated cases: a tibia on the table, two pins placed as a surgeon would, two C-arm views.
+
+Used by tests, benchmarks and the demo. The simulation knows the ground truth; it is written
+to a separate file that the solver never reads. Contours are traced on the full-resolution
+meshes (the solver uses a simplified copy), then Gaussian pixel noise is added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from .anatomy import plane_normal_from_angles
+from .camera import Camera
+from .geometry import Pose, look_at, rotation_about
+from .observations import ViewObservation
+from .plan import Plan
+from .silhouette import ContourGenerator
+from .slam import InitialGuess
+
+__all__ = ["SimulationConfig", "SimulatedCase", "simulate_case", "default_camera", "perturb"]
+
+# A mobile C-arm: ~1000 mm source to detector, 1024 px over a 23 cm image intensifier,
+# knee at the isocentre ~620 mm from the source.
+SOURCE_TO_DETECTOR_MM = 1000.0
+SOURCE_TO_ISOCENTRE_MM = 620.0
+DETECTOR_FIELD_MM = 230.0
+DETECTOR_PIXELS = 1024
+
+
+def default_camera() -> Camera:
+    return Camera.from_geometry(SOURCE_TO_DETECTOR_MM, DETECTOR_FIELD_MM, DETECTOR_PIXELS)
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    view_angles_deg: tuple[float, ...] = (-30.0, 30.0)  # about the leg axis, 0 = AP
+    noise_px: float = 2.0
+    init_rot_sd_rad: float = 0.1
+    init_trans_sd_mm: float = 20.0
+    outline_spacing_px: float = 1.0
+    seed: int = 0
+
+
+@dataclass
+class SimulatedCase:
+    plan: Plan
+    views: list[ViewObservation]
+    initial: InitialGuess
+    truth_T_cam_tibia: list[Pose]
+    truth_T_tibia_pin: list[Pose]
+    truth_ctr_deg: float
+    truth_str_deg: float
+    config: SimulationConfig
+
+
+def perturb(T: Pose, rng: np.random.Generator, rot_sd: float, trans_sd: float,
+            about: Pose | None = None) -> Pose:
+    """``T`` moved by a random increment (Gaussian rotation vector and translation).
+
+    The increment is applied in the frame ``about`` (given in T's source frame), e.g. the
+    anatomical frame so that a view's error rotates the bone about the knee.
+    """
+    xi = np.concatenate([rng.normal(0.0, trans_sd, 3), rng.normal(0.0, rot_sd, 3)])
+    if about is None:
+        return T.retract(xi)
+    return T @ about.retract(xi) @ about.inverse()
+
+
+def _place_pins(plan: Plan, rng: np.random.Generator) -> tuple[list[Pose], float, float]:
+    """Two parallel pins through an anteromedial cutting block, at a plausible CTR/STR."""
+    lm = plan.landmarks
+    T_tibia_anat = lm.T_tibia_anat()
+    ctr = np.radians(rng.uniform(-4.0, 4.0))
+    str_ = np.radians(rng.uniform(-1.0, 8.0))
+    normal = plane_normal_from_angles(ctr, str_, lm.medial_sign)
+    depth_below_plateau = rng.uniform(10.0, 25.0)
+    plane_point = np.array([0.0, 0.0, -depth_below_plateau])
+    # In-plane directions: 'posterior' (pin insertion) and 'across' (pin spacing).
+    posterior = np.array([0.0, -1.0, 0.0])
+    posterior -= np.dot(posterior, normal) * normal
+    posterior = rotation_about(normal, np.radians(rng.uniform(-15.0, 15.0))) @ posterior
+    posterior /= np.linalg.norm(posterior)
+    across = np.cross(normal, posterior)
+    across *= np.sign(across[0])  # towards +x, so offsets are signed like x
+    spacing = rng.uniform(20.0, 40.0)
+    centre_offset = lm.medial_sign * rng.uniform(0.0, 12.0)  # anteromedial block
+    sdf = plan.bone_model().sdf
+    pins = []
+    for offset in (centre_offset - spacing / 2, centre_offset + spacing / 2):
+        start = plane_point + across * offset - posterior * 150.0  # far anterior, outside
+        t = np.arange(0.0, 300.0, 0.5)
+        line_anat = start + t[:, None] * posterior
+        d = sdf.query(T_tibia_anat.apply(line_anat))[0]
+        inside = np.nonzero(d < 0)[0]
+        if len(inside) == 0:
+            raise RuntimeError("simulated pin line misses the bone; cannot place pins")
+        entry = t[inside[0]]
+        # Drill 25-45 mm, but keep the tip at least 3 mm inside the bone.
+        for drilled in np.linspace(rng.uniform(25.0, 45.0), 8.0, 40):
+            tip_anat = start + (entry + drilled) * posterior
+            if sdf.query(T_tibia_anat.apply(tip_anat[None]))[0][0] < -3.0:
+                break
+        z_axis = -posterior  # pin frame +z runs from the tip back out towards the block
+        x_axis = np.cross([0.0, 0.0, 1.0], z_axis)
+        x_axis /= np.linalg.norm(x_axis)
+        R_anat_pin = np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis])
+        pins.append(T_tibia_anat @ Pose(R_anat_pin, tip_anat))
+    return pins, float(np.degrees(ctr)), float(np.degrees(str_))
+
+
+def _view_poses(plan: Plan, angles_deg: tuple[float, ...], rng: np.random.Generator) -> list[Pose]:
+    """True ``T_cam_tibia`` of each view: a C-arm orbiting the leg axis around the knee."""
+    T_tibia_anat = plan.landmarks.T_tibia_anat()
+    # Patient set-up varies: the leg sits a little rotated and off the isocentre.
+    setup = Pose(rotation_about(rng.normal(size=3), np.radians(rng.uniform(0.0, 5.0))),
+                 rng.normal(0.0, 5.0, 3) + np.array([0.0, 0.0, -30.0]))
+    poses = []
+    for angle in angles_deg:
+        direction = rotation_about([0.0, 0.0, 1.0], np.radians(angle)) @ np.array([0.0, -1.0, 0.0])
+        eye = SOURCE_TO_ISOCENTRE_MM * direction  # source under the table, posterior
+        T_iso_cam = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        T_anat_cam = setup @ T_iso_cam
+        poses.append((T_tibia_anat @ T_anat_cam).inverse())
+    return poses
+
+
+def _observe(generator: ContourGenerator, T_cam_body: Pose, camera: Camera, outer_only: bool,
+             config: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    points = generator.outline_points(T_cam_body, camera, config.outline_spacing_px,
+                                      outer_only=outer_only)
+    uv = camera.project(T_cam_body.apply(points))
+    uv = uv + rng.normal(0.0, config.noise_px, uv.shape)
+    return uv[camera.in_field(uv)]
+
+
+def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> SimulatedCase:
+    rng = np.random.default_rng(config.seed)
+    camera = default_camera()
+    pins, ctr_deg, str_deg = _place_pins(plan, rng)
+    views_true = _view_poses(plan, config.view_angles_deg, rng)
+    bone_full = ContourGenerator.from_mesh(trimesh.util.concatenate(plan.bone_meshes()))
+    pin_full = ContourGenerator.from_mesh(plan.pin_mesh)
+    views = []
+    for k, T_cam_tibia in enumerate(views_true):
+        contours = {"bone": _observe(bone_full, T_cam_tibia, camera, True, config, rng)}
+        for label, T_tibia_pin in zip(("pin1", "pin2"), pins):
+            contours[label] = _observe(pin_full, T_cam_tibia @ T_tibia_pin, camera, False,
+                                       config, rng)
+        views.append(ViewObservation(f"view{k + 1}", camera, contours))
+    T_tibia_anat = plan.landmarks.T_tibia_anat()
+    initial = InitialGuess(
+        tuple(perturb(T, rng, config.init_rot_sd_rad, config.init_trans_sd_mm, T_tibia_anat)
+              for T in views_true),
+        tuple(perturb(T, rng, config.init_rot_sd_rad, config.init_trans_sd_mm) for T in pins),
+    )
+    return SimulatedCase(plan, views, initial, views_true, pins, ctr_deg, str_deg, config)

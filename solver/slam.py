@@ -1,0 +1,311 @@
+"""The joint solver: both C-arm views, both pins and every edge point at once.
+
+Problem layout (DESIGN.md section 4): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
+T_tibia_pin1, T_tibia_pin2]`` and one 3D point per kept contour pixel (bone points in the
+tibia frame, pin points in their pin's frame). The schedule:
+
+1. coarse alignment on the silhouettes alone (E_mp, poses only) from the encoder guess;
+2. edge points seated on their observed rays where each ray grazes its model;
+3. joint Levenberg-Marquardt on ``w_rp E_rp + w_bp E_bp + w_mp E_mp``;
+4. quality gates, the resection plane, and its covariance-based uncertainty.
+
+A pin's roll about its own axis is unobservable (a cylinder), so that direction is fixed.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .anatomy import Landmarks
+from .camera import Camera
+from .geometry import Pose
+from .measurement import ResectionPlane, angle_covariance, fit_resection_plane
+from .observations import LABELS, PIN_LABELS, ViewObservation
+from .optimizer import (
+    IterationInfo,
+    LMOptions,
+    RobustLoss,
+    SolveReport,
+    State,
+    Term,
+    levenberg_marquardt,
+    pose_covariance,
+)
+from .plan import Plan, RigidModel
+from .terms import BackProjectionTerm, ModelProjectionTerm, ReprojectionTerm
+
+__all__ = ["InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
+
+
+@dataclass(frozen=True)
+class InitialGuess:
+    """Starting poses: each view from the encoders, each pin from the planned resection."""
+
+    T_cam_tibia: tuple[Pose, ...]
+    T_tibia_pin: tuple[Pose, Pose]
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    sigma_px: float = 2.0  # expected contour noise, pixels
+    sigma_mm: float = 0.5  # expected distance of a true edge point to the model surface
+    w_rp: float = 1.0
+    w_bp: float = 1.0
+    w_mp: float = 0.1
+    edge_spacing_px: float = 4.0  # observed contours are thinned to this spacing
+    silhouette_spacing_px: float = 3.0
+    coarse: LMOptions = LMOptions(max_iterations=15, relative_tolerance=1e-3)
+    coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
+    fine: LMOptions = LMOptions(max_iterations=40, relative_tolerance=1e-5, step_tolerance=1e-5)
+    min_view_separation_deg: float = 15.0
+    min_bone_points: int = 50
+    min_pin_points: int = 20
+    max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
+    max_angle_sigma_deg: float = 2.0
+
+
+@dataclass
+class SolveOutcome:
+    """Everything the solve produced; ``status`` is ``measured`` or ``not_measured``."""
+
+    status: str
+    reason: str
+    state: State | None
+    T_cam_tibia: list[Pose]
+    T_tibia_pin: list[Pose]
+    plane: ResectionPlane | None
+    angle_cov: np.ndarray | None  # (2, 2) rad^2 of (CTR, STR)
+    residual_rms: dict[str, float]
+    term_costs: dict[str, float]
+    iterations: int
+    seconds: float
+    converged: bool
+    convergence_reason: str
+    point_counts: dict[str, int] = field(default_factory=dict)
+
+
+def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
+    """Keep one observed edge pixel per ``spacing_px`` grid cell (order preserved)."""
+    if len(pixels) == 0:
+        return pixels
+    cells = np.floor(pixels / spacing_px).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return pixels[np.sort(first)]
+
+
+def seat_on_rays(
+    model: RigidModel, T_cam_body: Pose, camera: Camera, pixels: np.ndarray, step_mm: float
+) -> np.ndarray:
+    """Body-frame 3D points on the rays of ``pixels`` where each ray grazes the model.
+
+    Samples each ray over the model's depth range and keeps the sample of smallest absolute
+    signed distance: the tangent point for a ray that grazes, the closest approach for one
+    that misses.
+    """
+    corners = np.array(np.meshgrid(*model.sdf.bounds().T, indexing="ij")).reshape(3, -1).T
+    depth = T_cam_body.apply(corners)[:, 2]
+    z = np.arange(max(depth.min(), 10.0), depth.max() + step_mm, step_mm)
+    rays = camera.rays(pixels)
+    rays = rays / rays[:, 2:3]  # unit depth
+    T_body_cam = T_cam_body.inverse()
+    samples = (rays[:, None, :] * z[None, :, None]).reshape(-1, 3)
+    d = model.sdf.query(T_body_cam.apply(samples))[0].reshape(len(pixels), len(z))
+    best = np.argmin(np.abs(d), axis=1)
+    return T_body_cam.apply(rays * z[best, None])
+
+
+def _view_separation_deg(views: list[Pose]) -> float:
+    """Largest angle between the viewing directions of any two views, degrees."""
+    axes = np.array([T.R[2] for T in views])  # camera +z in the tibia frame
+    cos = np.clip(axes @ axes.T, -1.0, 1.0)
+    return float(np.degrees(np.max(np.arccos(cos))))
+
+
+class JointProblem:
+    """Variables, terms and gauge of one solve, built from a plan and the views."""
+
+    def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig):
+        self.plan, self.views, self.config = plan, views, config
+        self.bone = plan.bone_model()
+        self.pin = plan.pin_model()
+        self.n_views = len(views)
+        self.pixels = {(k, label): thin_contour(v.contours[label], config.edge_spacing_px)
+                       for k, v in enumerate(views) for label in LABELS}
+
+    def body_index(self, label: str) -> int | None:
+        return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
+
+    def model(self, label: str) -> RigidModel:
+        return self.bone if label == "bone" else self.pin
+
+    def fixed_dofs(self, views: bool = False, pins: bool = False) -> np.ndarray:
+        """Mask of parameters held fixed: always each pin's roll about its own axis (a gauge
+        direction), and optionally all view or all pin parameters (staged solves)."""
+        fixed = np.zeros((self.n_views + 2, 6), bool)
+        fixed[: self.n_views] = views
+        fixed[self.n_views:] = pins
+        fixed[self.n_views:, 5] = True
+        return fixed.reshape(-1)
+
+    def T_cam_body(self, poses: tuple[Pose, ...], k: int, label: str) -> Pose:
+        body = self.body_index(label)
+        return poses[k] if body is None else poses[k] @ poses[body]
+
+    def seated_points(self, poses: tuple[Pose, ...]) -> tuple[np.ndarray, dict]:
+        """Edge points seated on their rays for ``poses``, with the id range of each group."""
+        chunks, ranges, start = [], {}, 0
+        for (k, label), px in self.pixels.items():
+            if len(px) == 0:
+                continue
+            step = 1.0 if label == "bone" else 0.25
+            chunks.append(seat_on_rays(self.model(label), self.T_cam_body(poses, k, label),
+                                       self.views[k].camera, px, step))
+            ranges[k, label] = np.arange(start, start + len(px))
+            start += len(px)
+        points = np.vstack(chunks) if chunks else np.zeros((0, 3))
+        return points, ranges
+
+    def silhouette_terms(self, labels: tuple[str, ...], weight: float,
+                         loss: RobustLoss) -> list[Term]:
+        c = self.config
+        terms: list[Term] = []
+        for k, view in enumerate(self.views):
+            for label in labels:
+                if len(view.contours[label]) == 0:
+                    continue
+                terms.append(ModelProjectionTerm(
+                    "E_mp", k, self.body_index(label), view.camera, self.model(label).contour,
+                    view.distance_map(label), self.pixels[k, label], c.sigma_px,
+                    c.silhouette_spacing_px,
+                    outer_only=(label == "bone"), weight=weight, loss=loss))
+        return terms
+
+    def edge_terms(self, ranges: dict) -> list[Term]:
+        c = self.config
+        terms: list[Term] = []
+        for (k, label), ids in ranges.items():
+            terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
+                                          self.pixels[k, label], ids, c.sigma_px, c.w_rp))
+            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, c.sigma_mm, c.w_bp))
+        return terms
+
+
+def _gate_inputs(problem: JointProblem, initial: InitialGuess) -> str | None:
+    """Reason why these inputs cannot give a trustworthy measurement, or None."""
+    c = problem.config
+    if problem.n_views < 2:
+        return f"only {problem.n_views} view(s); at least two are needed"
+    bone_views = sum(len(problem.pixels[k, "bone"]) >= c.min_bone_points
+                     for k in range(problem.n_views))
+    if bone_views < 2:
+        return (f"too few bone contour points: fewer than two views have at least "
+                f"{c.min_bone_points}")
+    for label in PIN_LABELS:
+        seen = sum(len(problem.pixels[k, label]) >= c.min_pin_points
+                   for k in range(problem.n_views))
+        if seen < 2:
+            return (f"{label} is not seen in two views (needs >= {c.min_pin_points} contour "
+                    f"points in each; seen in {seen})")
+    separation = _view_separation_deg(list(initial.T_cam_tibia))
+    if separation < c.min_view_separation_deg:
+        return (f"views are too close in angle ({separation:.1f} deg apart; at least "
+                f"{c.min_view_separation_deg:.0f} deg needed)")
+    return None
+
+
+def _residual_rms(terms: list[Term], state: State) -> dict[str, float]:
+    """RMS of the whitened residuals of each energy term (in units of its sigma)."""
+    sums: dict[str, list[float]] = {}
+    for term in terms:
+        r = term.linearize(state, jacobians=False).residuals
+        acc = sums.setdefault(term.name, [0.0, 0])
+        acc[0] += float(np.sum(r**2))
+        acc[1] += r.shape[0]
+    return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}
+
+
+def solve_joint(
+    plan: Plan,
+    views: list[ViewObservation],
+    initial: InitialGuess,
+    config: SolverConfig = SolverConfig(),
+    callback: Callable[[str, IterationInfo], None] | None = None,
+) -> SolveOutcome:
+    """Estimate view and pin poses jointly and measure the resection plane."""
+    start = time.perf_counter()
+    problem = JointProblem(plan, views, config)
+    counts = {f"{views[k].view_id}/{label}": len(px) for (k, label), px in problem.pixels.items()}
+    poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+
+    def not_measured(reason: str, state: State | None, report: SolveReport | None,
+                     rms: dict | None = None) -> SolveOutcome:
+        final = state.poses if state is not None else poses
+        return SolveOutcome(
+            "not_measured", reason, state, list(final[: problem.n_views]),
+            list(final[problem.n_views:]), None, None, rms or {},
+            report.term_costs if report else {}, report.iterations if report else 0,
+            time.perf_counter() - start, bool(report and report.converged),
+            report.reason if report else "not run", counts)
+
+    refusal = _gate_inputs(problem, initial)
+    if refusal is not None:
+        return not_measured(refusal, None, None)
+
+    fixed = problem.fixed_dofs()
+
+    def stage(name: str):
+        return None if callback is None else (lambda info: callback(name, info))
+
+    # Coarse alignment on silhouettes: views on the bone, then pins with the views held,
+    # each with a robust scale shrinking from wide (large basin) to tight.
+    state = State(poses, np.zeros((0, 3)))
+    iterations, seconds = 0, 0.0
+    for labels, held in ((("bone",), problem.fixed_dofs(pins=True)),
+                         (PIN_LABELS, problem.fixed_dofs(views=True))):
+        for scale in config.coarse_loss_scales:
+            terms = problem.silhouette_terms(labels, 1.0, RobustLoss("cauchy", scale))
+            state, coarse = levenberg_marquardt(terms, state, held, config.coarse,
+                                                stage(f"coarse {'+'.join(labels)} x{scale:g}"))
+            iterations += coarse.iterations
+            seconds += coarse.seconds
+    points, ranges = problem.seated_points(state.poses)
+    terms = problem.edge_terms(ranges) + problem.silhouette_terms(
+        LABELS, config.w_mp, RobustLoss("cauchy", 3.0))
+    state, fine = levenberg_marquardt(terms, State(state.poses, points), fixed, config.fine,
+                                      stage("joint"))
+    report = SolveReport(fine.converged, fine.reason, iterations + fine.iterations,
+                         fine.cost, fine.term_costs, seconds + fine.seconds, fine.history)
+    rms = _residual_rms(terms, state)
+    rms_px = rms.get("E_rp", 0.0) * config.sigma_px
+    if not fine.converged:
+        return not_measured(f"the solve did not converge ({fine.reason})", state, report, rms)
+    if rms_px > config.max_residual_rms_px:
+        return not_measured(f"contours do not fit the models (re-projection RMS {rms_px:.1f} px "
+                            f"> {config.max_residual_rms_px:.1f} px)", state, report, rms)
+    final_views = list(state.poses[: problem.n_views])
+    separation = _view_separation_deg(final_views)
+    if separation < config.min_view_separation_deg:
+        return not_measured(f"views are too close in angle ({separation:.1f} deg apart)",
+                            state, report, rms)
+
+    pins = list(state.poses[problem.n_views:])
+    plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
+    cov = pose_covariance(terms, state, fixed)
+    pin_slice = slice(6 * problem.n_views, 6 * (problem.n_views + 2))
+    dof = sum(t.linearize(state, False).residuals.size for t in terms) - len(points) * 3 - fixed.size
+    variance_factor = max(1.0, fine.cost / max(dof, 1))
+    angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
+                                 plan.pin_length(), plan.landmarks)
+    sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
+    outcome = SolveOutcome("measured", "", state, final_views, pins, plane, angle_cov, rms,
+                           fine.term_costs, report.iterations, time.perf_counter() - start,
+                           True, fine.reason, counts)
+    if np.max(sigma_deg) > config.max_angle_sigma_deg:
+        outcome.status = "not_measured"
+        outcome.reason = (f"geometry is degenerate: angle uncertainty {np.max(sigma_deg):.2f} deg "
+                          f"exceeds {config.max_angle_sigma_deg:.1f} deg")
+    return outcome
