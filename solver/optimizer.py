@@ -34,6 +34,8 @@ __all__ = [
 # Regularisation of each point's 3x3 block relative to its trace: a contour point's depth
 # along its grazing ray is unobservable to first order, so its block is rank deficient.
 _POINT_REGULARISATION = 1e-6
+# Absolute floor on the pose diagonal so an unobserved direction cannot make S singular.
+_POSE_REGULARISATION = 1e-9
 
 
 @dataclass(frozen=True)
@@ -201,7 +203,10 @@ def build_normal_equations(
 def _reduced_system(
     ne: NormalEquations, n_poses: int, lam: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Schur complement in the poses: returns (S, rhs, V_inv, H_px padded per point)."""
+    """Schur complement of the LM-damped system: returns (S, rhs, V_inv, padded H_px).
+
+    Damping ``lam * diag`` is applied to the pose and point blocks *before* elimination, so
+    the step equals that of the damped full system."""
     P = n_poses
     V = ne.H_xx.copy()
     diag = np.einsum("xii->xi", V)
@@ -226,7 +231,8 @@ def _reduced_system(
     g_shift = np.zeros((P + 1, 6))
     np.add.at(g_shift, pose_of, np.einsum("xaij,xj->xai", Y, ne.g_x))
 
-    S = ne.H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
+    H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
+    S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
     rhs = -ne.g_p + g_shift[:P].reshape(-1)
     return S, rhs, V_inv, (W, pose_of)
 
@@ -235,7 +241,6 @@ def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float)
     """LM step (pose increments (6P,), point increments (X, 3)) for damping ``lam``."""
     S, rhs, V_inv, (W, pose_of) = _reduced_system(ne, n_poses, lam)
     S_free = S[np.ix_(free, free)]
-    S_free[np.diag_indices_from(S_free)] += lam * np.diag(S_free) + 1e-9
     d_p = np.zeros(6 * n_poses)
     d_p[free] = np.linalg.solve(S_free, rhs[free])
     d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])

@@ -80,6 +80,9 @@ SPINE_SIGMA_MM = (3.3, 5.0)         # ML, AP spread of a tubercle
 EMINENCE_RIDGE_HEIGHT_MM = 3.0      # low ridge joining the tubercles
 EMINENCE_RIDGE_SIGMA_MM = (7.0, 9.0)
 PLATEAU_EDGE_RADIUS_MM = 2.5        # rounding of the plateau rim
+# Pole of the plateau cap mesh: in the flat anterior intercondylar area, so the
+# fan of thin triangles around it stays flat (no folds on the eminence).
+TOP_CAP_POLE = (0.0, 12.0)
 
 # Proximal metaphysis, mm below the plateau.
 PLATEAU_RIM_DEPTH_MM = 8.0   # near-vertical condylar rim below the surface
@@ -104,7 +107,7 @@ DISTAL_CORNER_SOFTNESS_MM = 3.0
 DISTAL_FLARE_START_MM = 100.0   # above the malleolar tip: flare begins
 DISTAL_FLARE_END_MM = 17.0     # above the malleolar tip: full distal width
 DISTAL_WALL_MM = 17.0          # above the malleolar tip: walls vertical below
-TIBIAL_TORSION_DEG = 22.0      # external torsion of the distal end
+TIBIAL_TORSION_DEG = 18.0      # external torsion of the distal end
 
 # Distal articular end (distal local frame, heights above the malleolar tip).
 PLAFOND_HEIGHT_MM = 13.0            # plafond level above the medial malleolus tip
@@ -121,9 +124,9 @@ DISTAL_BLEND_MM = 3.0
 # anatomical frame (z below plateau), distal ones in the distal tibial frame
 # (z above the medial malleolus tip) so the fibula always sits in the notch.
 FIBULA_PROXIMAL_CENTRE_LINE = (  # (depth below plateau, x, y)
-    (19.0, 30.5, -18.5),
-    (25.0, 30.5, -18.0),
-    (48.0, 30.0, -15.0),
+    (19.0, 32.0, -20.0),
+    (25.0, 32.0, -19.5),
+    (48.0, 30.5, -15.5),
     (100.0, 29.5, -12.0),
 )
 FIBULA_MID_BOW_MM = (1.5, -2.5)     # lateral/posterior bow at mid-shaft
@@ -156,7 +159,9 @@ FIBULA_DISTAL_PROFILE = (  # (height above medial malleolus tip, ML, AP, tri.)
     (-6.0, 6.5, 10.0, 0.0),
 )
 FIBULA_NOTCH_GAP_MM = 1.0          # clearance carved between fibula and tibia
-FIBULA_CARVE_BLEND_MM = 2.0
+FIBULA_CARVE_BLEND_MM = 3.0
+FIBULA_CLEARANCE_WINDOW_MM = 2.0  # > tibia ring spacing near the joints
+FIBULA_EXACT_DISTANCE_MM = 5.0    # > gap + blend: farther, a bound suffices
 
 
 @dataclass(frozen=True)
@@ -403,11 +408,11 @@ class _RightLegDesign:
         h = np.tan(np.radians(POSTERIOR_SLOPE_DEG)) * y
         h -= MEDIAL_DISH_DEPTH_MM * _bump(x, y, MEDIAL_DISH_CENTRE, MEDIAL_DISH_SEMI_AXES)
         h -= LATERAL_DISH_DEPTH_MM * _bump(x, y, LATERAL_DISH_CENTRE, LATERAL_DISH_SEMI_AXES)
-        spines = np.maximum(
-            MEDIAL_SPINE_HEIGHT_MM * _gauss(x, y, MEDIAL_SPINE_CENTRE, SPINE_SIGMA_MM),
-            LATERAL_SPINE_HEIGHT_MM * _gauss(x, y, LATERAL_SPINE_CENTRE, SPINE_SIGMA_MM))
+        medial = MEDIAL_SPINE_HEIGHT_MM * _gauss(x, y, MEDIAL_SPINE_CENTRE, SPINE_SIGMA_MM)
+        lateral = LATERAL_SPINE_HEIGHT_MM * _gauss(x, y, LATERAL_SPINE_CENTRE, SPINE_SIGMA_MM)
         ridge = EMINENCE_RIDGE_HEIGHT_MM * _gauss(x, y, (0.0, -1.0), EMINENCE_RIDGE_SIGMA_MM)
-        return h + np.maximum(spines, ridge)
+        # Smooth maximum (4-norm): two distinct tubercles on a ridge, no creases.
+        return h + (medial ** 4 + lateral ** 4 + ridge ** 4) ** 0.25
 
     def distal_height(self, x: Array, y: Array) -> Array:
         """Distal articular end: vaulted plafond and the medial malleolus."""
@@ -477,25 +482,40 @@ class _RightLegDesign:
         return np.sqrt(np.clip(1.0 - np.maximum(above, below) ** 2, 0.0, None))
 
     def fibula_sdf(self, x: Array, y: Array, z: Array) -> Array:
-        """Approximate signed distance to the fibula section at height z."""
+        """Approximate signed distance to the fibula section at height z.
+
+        Exact polar radius only near the fibula; elsewhere a lower bound of the
+        distance is returned, which is all the tibial carving needs (it only
+        acts within a few mm) and keeps the build fast.
+        """
         cx, cy = self.fibula_centre(z)
         dx, dy = x - cx, y - cy
         rho = np.maximum(np.hypot(dx, dy), 1e-9)
-        radius = self.fibula_radius(dx / rho, dy / rho, z) * self.fibula_dome_scale(z)
-        return rho - radius
+        prof = self._fib_profile(np.clip(z, self.fib_bottom_rim, self.fib_top_rim))
+        bound = (np.maximum(prof[..., 0], prof[..., 1]) * (1.0 + np.abs(prof[..., 2]))
+                 * self.fibula_dome_scale(z))
+        dist = rho - bound
+        near = dist < FIBULA_EXACT_DISTANCE_MM
+        z_near = np.broadcast_to(z, rho.shape)[near]
+        radius = (self.fibula_radius(dx[near] / rho[near], dy[near] / rho[near], z_near)
+                  * self.fibula_dome_scale(z_near))
+        dist[near] = rho[near] - radius
+        return dist
 
     def fibula_clearance_sdf(self, x: Array, y: Array, z: Array) -> Array:
-        """Fibula distance, also covering the fibula just below z distally.
+        """Distance to the fibula within a small height window around z.
 
-        The tibial walls below the distal wall height are vertical, so they must
-        keep clear of every fibula section beneath them (lateral malleolus).
+        The window covers the spacing between tibia rings (so the lofted
+        surface between two rings keeps clear of the fibular head apex) and,
+        distally, every fibula section below z: the tibial walls near the
+        plafond are vertical and must clear the whole lateral malleolus.
         """
         reach = (DISTAL_WALL_MM + LATERAL_MALLEOLUS_DROP_MM) * _smoothstep(
             self.z_tip + 2.0 * DISTAL_WALL_MM, self.z_bottom_wall, z)
-        if not np.any(reach > 0.0):
-            return self.fibula_sdf(x, y, z)
-        return np.min([self.fibula_sdf(x, y, z - reach * t)
-                       for t in np.linspace(0.0, 1.0, 7)], axis=0)
+        samples = 3 if not np.any(reach > 0.0) else 11
+        offsets = np.linspace(FIBULA_CLEARANCE_WINDOW_MM,
+                              -FIBULA_CLEARANCE_WINDOW_MM - reach, samples)
+        return np.min([self.fibula_sdf(x, y, z + dz) for dz in offsets], axis=0)
 
 
 # ---------------------------------------------------------------------------
@@ -571,29 +591,38 @@ def _build_tibia(design: _RightLegDesign) -> trimesh.Trimesh:
             lambda x, y, z: design.tibia_sdf(x, y, z, carve=carve),
             cx[rows], cy[rows], z_walls[rows], theta)
 
-    def cap(ring_radius: Array, centre: tuple[float, float],
+    def cap(ring_radius: Array, centre: tuple[float, float], pole_xy: tuple[float, float],
             height: Callable[[Array, Array], Array], edge: float, sign: float,
             n_cap: int) -> tuple[Array, Array]:
         """Cap rings from pole to rim: height field, then a rounded edge.
 
+        The rim follows the wall rays from centre; the inner rings shrink
+        towards pole_xy, which must see the whole rim (star-shaped cap).
         sign=+1 for the plateau (edge rolls down), -1 for the distal end.
         Returns the pole (3,) and rings (n_cap + EDGE_ROUND_RINGS, n, 3).
         """
         inner = np.clip(ring_radius - edge, 0.5, None)
+        rim = np.stack([centre[0] + inner * ux - pole_xy[0],
+                        centre[1] + inner * uy - pole_xy[1]], axis=-1)
+        nxt = np.roll(rim, -1, axis=0)
+        if np.any(rim[:, 0] * nxt[:, 1] - rim[:, 1] * nxt[:, 0] <= 0.0):
+            raise RuntimeError("cap pole does not see the whole rim")
         s = np.linspace(0.0, 1.0, n_cap + 1)[1:, None]
         phi = np.linspace(0.5 * np.pi, 0.0, EDGE_ROUND_RINGS + 1)[1:, None]
-        rad = np.concatenate([s * inner, inner + edge * np.cos(phi)])
+        roll = inner + edge * np.cos(phi)
+        x = np.concatenate([pole_xy[0] + s * rim[:, 0], centre[0] + roll * ux])
+        y = np.concatenate([pole_xy[1] + s * rim[:, 1], centre[1] + roll * uy])
         drop = np.concatenate([np.zeros_like(s), edge * (1.0 - np.sin(phi))])
-        x, y = centre[0] + rad * ux, centre[1] + rad * uy
         z = height(x, y) - sign * drop
-        pole = np.array([centre[0], centre[1], float(height(*map(np.asarray, centre)))])
+        pole = np.array([*pole_xy, float(height(*map(np.asarray, pole_xy)))])
         return pole, np.stack([x, y, z], axis=-1)
 
     top_centre = (float(cx[0]), float(cy[0]))
     bottom_centre = (float(cx[-1]), float(cy[-1]))
-    top_pole, top_rings = cap(radii[0], top_centre, design.plateau_height,
+    top_pole, top_rings = cap(radii[0], top_centre, TOP_CAP_POLE, design.plateau_height,
                               PLATEAU_EDGE_RADIUS_MM, 1.0, TOP_CAP_RINGS)
-    bottom_pole, bottom_rings = cap(radii[-1], bottom_centre, design.distal_height,
+    bottom_pole, bottom_rings = cap(radii[-1], bottom_centre, bottom_centre,
+                                    design.distal_height,
                                     DISTAL_EDGE_RADIUS_MM, -1.0, BOTTOM_CAP_RINGS)
 
     walls = np.stack([cx[:, None] + radii * ux, cy[:, None] + radii * uy,

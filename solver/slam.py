@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from .anatomy import Landmarks
+from .alignment import align_view_in_image
 from .camera import Camera
 from .geometry import Pose
 from .measurement import ResectionPlane, angle_covariance, fit_resection_plane
@@ -60,7 +60,7 @@ class SolverConfig:
     silhouette_spacing_px: float = 3.0
     coarse: LMOptions = LMOptions(max_iterations=15, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
-    fine: LMOptions = LMOptions(max_iterations=40, relative_tolerance=1e-5, step_tolerance=1e-5)
+    fine: LMOptions = LMOptions(max_iterations=40, relative_tolerance=1e-4, step_tolerance=1e-5)
     min_view_separation_deg: float = 15.0
     min_bone_points: int = 50
     min_pin_points: int = 20
@@ -262,6 +262,9 @@ def solve_joint(
 
     # Coarse alignment on silhouettes: views on the bone, then pins with the views held,
     # each with a robust scale shrinking from wide (large basin) to tight.
+    bone = problem.bone
+    poses = tuple(align_view_in_image(bone.contour, T, view.camera, view.distance_map("bone"))
+                  for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
     state = State(poses, np.zeros((0, 3)))
     iterations, seconds = 0, 0.0
     for labels, held in ((("bone",), problem.fixed_dofs(pins=True)),

@@ -16,7 +16,7 @@ is the tibia frame itself.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -136,20 +136,14 @@ class ModelProjectionTerm:
     outer_only: bool = True
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("cauchy", 3.0)
-    # Silhouette points traced at the last linearisation. Cost-only evaluations (trial steps)
-    # reuse them, as ICP keeps its correspondences within an iteration: tracing is the
-    # expensive part and the trial cost stays comparable with the current one.
-    _traced: np.ndarray | None = field(default=None, repr=False)
 
     def _T_cam_body(self, state: State):
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        if jacobians or self._traced is None:
-            self._traced = self.contour.outline_points(
-                self._T_cam_body(state), self.camera, self.spacing_px, outer_only=self.outer_only)
-        S = self._traced
+        S = self.contour.outline_points(self._T_cam_body(state), self.camera, self.spacing_px,
+                                        outer_only=self.outer_only)
         if len(S) == 0:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)

@@ -1,0 +1,61 @@
+"""End to end through the command line: simulate a case folder, solve it, read the result."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from service.cli import main
+from tests.conftest import REAL_LANDMARKS, SHARED_DATA
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "tibia-right.stl").exists(), reason="shared meshes absent")
+def test_simulate_then_solve_writes_a_complete_result(tmp_path, real_plan):
+    case = tmp_path / "case"
+    assert main(["simulate", "--out", str(case), "--tibia", str(SHARED_DATA / "tibia-right.stl"),
+                 "--fibula", str(SHARED_DATA / "fibula-right.stl"), "--landmarks", str(REAL_LANDMARKS),
+                 "--seed", "4", "--init-rot-sd", "0.03", "--init-trans-sd", "5"]) == 0
+    for name in ("case.json", "plan/plan.json", "calibration.json", "contours.json", "initial.json",
+                 "ground_truth.json"):
+        assert (case / name).is_file(), name
+    out = tmp_path / "result.json"
+    code = main(["solve", str(case), "--json", str(out)])
+    doc = json.loads(out.read_text())
+    assert code == (0 if doc["status"] == "measured" else 3)
+    assert doc["format"] == "slamtka-result/1"
+    assert "varus" in doc["sign_convention"]["CTR"] and "posterior" in doc["sign_convention"]["STR"]
+    assert set(doc["poses"]["T_cam_tibia"]) == {"view1", "view2"} and len(doc["poses"]["T_tibia_pin"]) == 2
+    assert doc["inputs"]["calibration_id"] == "simulated-carm"
+    assert doc["solver"]["iterations"] > 0 and "E_rp" in doc["solver"]["residual_rms_sigma"]
+    truth = json.loads((case / "ground_truth.json").read_text())
+    assert doc["status"] == "measured", doc["reason"]
+    assert abs(doc["angles"]["ctr_deg"] - truth["ctr_deg"]) < 1.0
+    assert abs(doc["angles"]["str_deg"] - truth["str_deg"]) < 1.0
+
+
+def test_solve_refuses_a_folder_that_is_not_a_case(tmp_path, capsys):
+    (tmp_path / "case.json").write_text("{not json")
+    assert main(["solve", str(tmp_path)]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
+    assert main(["solve", str(tmp_path / "missing")]) == 2
+    assert "file missing" in capsys.readouterr().err
+
+
+def test_tampered_calibration_is_refused(tmp_path, real_plan):
+    case = tmp_path / "case"
+    main(["simulate", "--out", str(case), "--tibia", str(SHARED_DATA / "tibia-right.stl"),
+          "--landmarks", str(REAL_LANDMARKS), "--seed", "5"])
+    calibration = json.loads((case / "calibration.json").read_text())
+    calibration["camera"]["fx"] *= 1.01
+    (case / "calibration.json").write_text(json.dumps(calibration))
+    assert main(["solve", str(case)]) == 2
+
+
+def test_demo_runs_on_the_builtin_phantom(tmp_path, phantom_plan):
+    result = subprocess.run([sys.executable, "-m", "service.cli", "demo", "--out", str(tmp_path / "demo")],
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode in (0, 3), result.stderr
+    assert "CTR" in result.stdout or "reason" in result.stdout
+    doc = json.loads((tmp_path / "demo" / "result.json").read_text())
+    assert doc["inputs"]["plan"]["patient_id"] == "PHANTOM"

@@ -1,0 +1,78 @@
+import logging
+
+import igl
+import numpy as np
+import pytest
+import trimesh
+
+from solver.meshes import MeshError, load_mesh
+from solver.pin import PinSpec, build_pin
+from solver.sdf import SignedDistanceField
+from tests.conftest import SHARED_DATA
+
+
+def test_pin_is_a_closed_trocar_of_the_right_size():
+    pin = build_pin(PinSpec(length_mm=80.0))
+    assert pin.is_watertight and pin.volume > 0
+    assert np.allclose(pin.bounds, [[-1.6, -1.6, 0.0], [1.6, 1.6, 80.0]], atol=1e-6)
+    tip = pin.vertices[pin.vertices[:, 2] < 5.0]
+    # Three facets: the tip cross-section at mid height is a rounded triangle, not a circle.
+    ring = tip[np.abs(tip[:, 2] - tip[:, 2].max() / 2) < 0.6]
+    assert len(ring) > 0
+    with pytest.raises(ValueError):
+        PinSpec(diameter_mm=40.0)
+
+
+def test_sdf_matches_exact_distance_and_its_gradient(tmp_path):
+    pin = build_pin()
+    field = SignedDistanceField.cached([pin], 0.2, 1.6, tmp_path)
+    assert len(list(tmp_path.glob("sdf-*.npz"))) == 1
+    again = SignedDistanceField.cached([pin], 0.2, 1.6, tmp_path)
+    assert np.array_equal(again.values, field.values)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-3, 3, 500), rng.uniform(-3, 3, 500), rng.uniform(10, 80, 500)])
+    exact = igl.signed_distance(pts, pin.vertices.astype(float), pin.faces.astype(np.int64))[0]
+    value, grad = field.query(pts)
+    assert np.median(np.abs(value - exact)) < 0.03
+    eps = 1e-5
+    for axis in range(3):
+        d = np.zeros(3)
+        d[axis] = eps
+        fd = (field.query(pts + d)[0] - field.query(pts - d)[0]) / (2 * eps)
+        assert np.median(np.abs(fd - grad[:, axis])) < 1e-4
+    # Far outside the grid the distance keeps growing and points back.
+    far_value, far_grad = field.query(np.array([[30.0, 0.0, 40.0]]))
+    assert far_value[0] > 25 and far_grad[0, 0] > 0.9
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "tibia-right.stl").exists(), reason="shared meshes absent")
+def test_real_meshes_in_metres_are_converted_and_holes_reported(caplog):
+    with caplog.at_level(logging.WARNING):
+        tibia = load_mesh(SHARED_DATA / "tibia-right.stl", (40.0, 600.0))
+        fibula = load_mesh(SHARED_DATA / "fibula-right.stl", (40.0, 600.0))
+    assert 80 < tibia.extents.max() < 95
+    assert fibula.extents.max() > 40
+    assert "units detected as m" in caplog.text and "not watertight" in caplog.text
+    with pytest.raises(MeshError, match="not watertight"):
+        load_mesh(SHARED_DATA / "fibula-right.stl", (40.0, 600.0), require_watertight=True)
+
+
+def test_bad_mesh_files_get_clear_errors(tmp_path):
+    empty = tmp_path / "empty.stl"
+    empty.write_bytes(b"")
+    with pytest.raises(MeshError, match="empty.stl"):
+        load_mesh(empty, (40, 600))
+    garbage = tmp_path / "garbage.obj"
+    garbage.write_text("this is not a mesh\n")
+    with pytest.raises(MeshError, match="garbage.obj"):
+        load_mesh(garbage, (40, 600))
+    text = tmp_path / "mesh.txt"
+    text.write_text("")
+    with pytest.raises(MeshError, match="unsupported"):
+        load_mesh(text, (40, 600))
+    huge = tmp_path / "huge.stl"
+    trimesh.creation.box((5000, 5000, 5000)).export(huge)
+    with pytest.raises(MeshError, match="fits no unit"):
+        load_mesh(huge, (40, 600))
+    with pytest.raises(MeshError, match="outside the plausible"):
+        load_mesh(huge, (40, 600), units="mm")

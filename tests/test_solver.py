@@ -1,0 +1,140 @@
+"""The joint solver: Jacobians, the Schur elimination, quality gates and accuracy."""
+
+import numpy as np
+import pytest
+
+from solver import optimizer
+from solver.geometry import Pose
+from solver.observations import ViewObservation
+from solver.optimizer import State
+from solver.simulate import SimulationConfig, simulate_case
+from solver.slam import InitialGuess, JointProblem, SolverConfig, solve_joint
+
+
+def _linearized_problem(plan, seed=0):
+    case = simulate_case(plan, SimulationConfig(seed=seed, init_rot_sd_rad=0.02, init_trans_sd_mm=3.0))
+    problem = JointProblem(plan, case.views, SolverConfig(edge_spacing_px=12.0))
+    poses = tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin)
+    points, ranges = problem.seated_points(poses)
+    from solver.optimizer import RobustLoss
+
+    terms = problem.edge_terms(ranges) + problem.silhouette_terms(
+        ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0))
+    return case, problem, State(poses, points), terms
+
+
+def test_analytic_jacobians_match_finite_differences(real_plan):
+    _, _, state, terms = _linearized_problem(real_plan)
+    n_poses = len(state.poses)
+    checked = set()
+    for term in terms:
+        lin = term.linearize(state)
+        for pose_ids, J in lin.pose_jacobians:
+            p = int(pose_ids[0])
+            for dof in range(6):
+                eps = 1e-6
+                d = np.zeros((n_poses, 6))
+                d[p, dof] = eps
+                moved = term.linearize(state.retract(d.ravel(), np.zeros_like(state.points)), False)
+                if moved.residuals.shape != lin.residuals.shape:
+                    continue  # the traced silhouette changed: not comparable
+                fd = (moved.residuals - lin.residuals) / eps
+                err = np.abs(fd - J[:, :, dof])
+                # Piecewise-bilinear distance maps have kinks: require agreement almost everywhere.
+                assert np.mean(err < 1e-3 * (1 + np.abs(J[:, :, dof]))) > 0.97, (term.name, dof)
+                checked.add(term.name)
+        if lin.point_jacobian is not None:
+            ids, J = lin.point_jacobian
+            for dof in range(3):
+                eps = 1e-6
+                d = np.zeros_like(state.points)
+                d[ids, dof] = eps
+                moved = term.linearize(state.retract(np.zeros(6 * n_poses), d), False)
+                fd = (moved.residuals - lin.residuals) / eps
+                err = np.abs(fd - J[:, :, dof])
+                assert np.mean(err < 1e-3 * (1 + np.abs(J[:, :, dof]))) > 0.97, (term.name, dof)
+                checked.add(term.name)
+    assert checked == {"E_rp", "E_bp", "E_mp"}
+
+
+def test_schur_step_equals_the_dense_solution(real_plan):
+    _, problem, state, terms = _linearized_problem(real_plan)
+    P, X = len(state.poses), len(state.points)
+    lins = [t.linearize(state) for t in terms]
+    ne = optimizer.build_normal_equations(terms, lins, P, X)
+    free = ~problem.fixed_dofs()
+    lam = 1e-3
+    d_p, d_x = optimizer._solve_step(ne, P, free, lam)
+    # Dense system in the same damping convention.
+    n = 6 * P + 3 * X
+    H = np.zeros((n, n))
+    H[: 6 * P, : 6 * P] = ne.H_pp
+    for i in range(X):
+        V = ne.H_xx[i].copy()
+        diag = np.diag(V).copy()
+        V[np.diag_indices(3)] += lam * diag + optimizer._POINT_REGULARISATION * diag.sum()
+        H[6 * P + 3 * i: 6 * P + 3 * i + 3, 6 * P + 3 * i: 6 * P + 3 * i + 3] = V
+    for pt, pose, block in zip(ne.pair_point, ne.pair_pose, ne.H_px):
+        H[6 * pose: 6 * pose + 6, 6 * P + 3 * pt: 6 * P + 3 * pt + 3] = block
+        H[6 * P + 3 * pt: 6 * P + 3 * pt + 3, 6 * pose: 6 * pose + 6] = block.T
+    g = np.concatenate([ne.g_p, ne.g_x.ravel()])
+    keep = np.concatenate([free, np.ones(3 * X, bool)])
+    Hk = H[np.ix_(keep, keep)]
+    pose_diag = np.arange(free.sum())
+    Hk[pose_diag, pose_diag] += lam * np.diag(Hk)[pose_diag] + 1e-9
+    dense = np.linalg.solve(Hk, -g[keep])
+    assert np.allclose(dense[: free.sum()], d_p[free], rtol=1e-5, atol=1e-8)
+    assert np.allclose(dense[free.sum():], d_x.ravel(), rtol=1e-4, atol=1e-6)
+
+
+def _errors(case, outcome):
+    return (abs(np.degrees(outcome.plane.ctr) - case.truth_ctr_deg),
+            abs(np.degrees(outcome.plane.str_) - case.truth_str_deg))
+
+
+def test_noise_free_observations_give_exact_angles(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=3, noise_px=0.0, init_rot_sd_rad=0.0,
+                                                     init_trans_sd_mm=0.0))
+    outcome = solve_joint(real_plan, case.views, case.initial)
+    assert outcome.status == "measured", outcome.reason
+    assert max(_errors(case, outcome)) < 0.05
+
+
+def test_views_too_close_are_refused(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=1, view_angles_deg=(-2.0, 3.0)))
+    outcome = solve_joint(real_plan, case.views, case.initial)
+    assert outcome.status == "not_measured" and "too close in angle" in outcome.reason
+    assert outcome.plane is None
+
+
+def test_pin_missing_from_a_view_is_refused(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=1))
+    view = case.views[1]
+    views = [case.views[0], ViewObservation(view.view_id, view.camera,
+                                            {**view.contours, "pin2": np.zeros((0, 2))})]
+    outcome = solve_joint(real_plan, views, case.initial)
+    assert outcome.status == "not_measured" and "pin2 is not seen in two views" in outcome.reason
+
+
+def test_too_few_contour_points_are_refused(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=1))
+    views = [ViewObservation(v.view_id, v.camera, {**v.contours, "bone": v.contours["bone"][:30]})
+             for v in case.views]
+    outcome = solve_joint(real_plan, views, case.initial)
+    assert outcome.status == "not_measured" and "too few bone contour points" in outcome.reason
+
+
+def test_one_view_is_refused(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=1))
+    initial = InitialGuess(case.initial.T_cam_tibia[:1], case.initial.T_tibia_pin)
+    outcome = solve_joint(real_plan, case.views[:1], initial)
+    assert outcome.status == "not_measured" and "at least two" in outcome.reason
+
+
+def test_callback_reports_every_iteration(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=2, init_rot_sd_rad=0.02, init_trans_sd_mm=3.0))
+    seen = []
+    solve_joint(real_plan, case.views, case.initial, callback=lambda stage, info: seen.append((stage, info.cost)))
+    stages = {s for s, _ in seen}
+    assert "joint" in stages and any(s.startswith("coarse") for s in stages)
+    assert all(np.isfinite(c) for _, c in seen)
