@@ -24,6 +24,7 @@ fibula at +x) and mirrored in x for a left leg.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Callable
 
 import numpy as np
@@ -47,6 +48,7 @@ FIBULA_RING_VERTICES = 48
 TOP_CAP_RINGS = 24          # concentric rings of the plateau height field
 BOTTOM_CAP_RINGS = 16       # concentric rings of the distal (plafond) height field
 EDGE_ROUND_RINGS = 4        # rings rounding the rim between cap and wall
+RIM_TRANSITION_RINGS = 3    # vertical rings from a non-planar cap rim to the walls
 FIBULA_DOME_RINGS = 8       # rings of each fibular end dome
 
 # ---------------------------------------------------------------------------
@@ -98,22 +100,26 @@ SHAFT_TRIANGLE = ((1.0, 22.0), (-15.0, -9.0), (14.5, -6.0))
 SHAFT_CORNER_SOFTNESS_MM = 1.6
 SHAFT_ELLIPSE_SEMI_AXES = (13.0, 14.0)   # rounds the flat faces slightly
 SHAFT_CENTRE_Y_MM = 2.0      # shaft sits a little anterior to plateau centre
+SHAFT_ANTERIOR_BOW_MM = 3.0  # mild anterior convexity of the diaphysis
+# (depth / length, size factor of the triangle): narrowest in the distal third.
+SHAFT_SCALE_PROFILE = ((0.2, 1.25), (0.45, 1.0), (0.68, 0.88), (1.0, 0.92))
+# (depth / length, share of the ellipse): the distal shaft is rounder.
+SHAFT_ROUNDNESS_PROFILE = ((0.2, 0.15), (0.5, 0.2), (0.75, 0.45), (1.0, 0.5))
 
 # Distal metaphysis: rounded quadrilateral (anterolateral, anteromedial,
 # posteromedial, posterolateral), counter-clockwise, distal local frame, mm:
 # ~47 ML x ~32 AP above the plafond.
 DISTAL_QUAD = ((22.0, 12.0), (-25.5, 14.0), (-24.5, -16.0), (22.0, -14.5))
 DISTAL_CORNER_SOFTNESS_MM = 3.0
-DISTAL_FLARE_START_MM = 100.0   # above the malleolar tip: flare begins
-DISTAL_FLARE_END_MM = 17.0     # above the malleolar tip: full distal width
-DISTAL_WALL_MM = 17.0          # above the malleolar tip: walls vertical below
+DISTAL_FLARE_START_MM = 100.0  # above the malleolar tip: concave flare begins
+DISTAL_WALL_MM = 17.0          # above the malleolar tip: full width, vertical below
 TIBIAL_TORSION_DEG = 18.0      # external torsion of the distal end
 
 # Distal articular end (distal local frame, heights above the malleolar tip).
 PLAFOND_HEIGHT_MM = 13.0            # plafond level above the medial malleolus tip
 PLAFOND_VAULT_MM = 2.0              # plafond is concave (vaulted up)
 PLAFOND_VAULT_SEMI_AXES = (20.0, 15.0)
-MEDIAL_MALLEOLUS_TIP = (-17.5, 2.0)  # x, y of the tip
+MEDIAL_MALLEOLUS_TIP = (-17.5, 2.0)  # x, y of the tip (distal frame)
 MEDIAL_MALLEOLUS_SEMI_AXES = (10.0, 13.0)  # footprint at plafond level
 MEDIAL_MALLEOLUS_LANDMARK_MM = 9.0  # landmark height above its tip
 MEDIAL_MALLEOLUS_BLUNTNESS = 1.3   # >1: blunt tip, steep articular face
@@ -142,8 +148,8 @@ FIBULA_HEAD_DOME_MM = 6.0          # height of the rounded head apex
 LATERAL_MALLEOLUS_DROP_MM = 12.0   # tip below the medial malleolus tip
 LATERAL_MALLEOLUS_DOME_MM = 6.0
 LATERAL_MALLEOLUS_LANDMARK_MM = 12.0  # landmark height above its tip
-# Semi-axes (ML, AP) and triangularity along the fibula, as
-# (depth below plateau or None, height above medial malleolus tip or None, ...).
+# Section along the fibula: semi-axes (ML, AP) and triangularity of the shaft;
+# head ~25 mm across, shaft ~13 mm, lateral malleolus ~14 x 22 mm.
 FIBULA_PROXIMAL_PROFILE = (  # (depth below plateau, ML, AP, triangularity)
     (19.0, 12.5, 12.0, 0.0),
     (27.0, 12.5, 12.5, 0.0),
@@ -254,6 +260,7 @@ def _soft_polygon_sdf(x: Array, y: Array, vertices: tuple[tuple[float, float], .
     Log-sum-exp of the edge half-plane distances: a smooth, convex shape that
     stays inside the sharp polygon, corners rounded over ~softness mm.
     """
+    x, y = np.broadcast_arrays(x, y)
     v = np.asarray(vertices, dtype=float)
     edges = np.roll(v, -1, axis=0) - v
     normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
@@ -332,10 +339,11 @@ class _RightLegDesign:
         return self.torsion * _smoothstep(-METAPHYSIS_END_MM, self.z_bottom_wall, z)
 
     def shaft_centre(self, z: Array) -> tuple[Array, Array]:
-        """Centre of the shaft/distal section: straight line to the distal centre."""
+        """Centre of the shaft/distal section: towards the distal centre, bowed."""
         t = _smoothstep(-0.5 * METAPHYSIS_END_MM, self.z_bottom_wall, z)
+        bow = SHAFT_ANTERIOR_BOW_MM * np.sin(np.pi * t)
         return (t * self.distal_centre[0],
-                (1.0 - t) * SHAFT_CENTRE_Y_MM + t * self.distal_centre[1])
+                (1.0 - t) * SHAFT_CENTRE_Y_MM + t * self.distal_centre[1] + bow)
 
     def metaphysis_weight(self, z: Array) -> Array:
         """0 on the plateau rim, 1 where the shaft begins (condyles, then a concave flare)."""
@@ -365,11 +373,9 @@ class _RightLegDesign:
 
     def _shaft_sdf(self, u: Array, v: Array, z: Array) -> Array:
         """Rounded triangular diaphysis, scaled along z (local coordinates)."""
-        L = self.length
-        scale = np.interp(-z, [METAPHYSIS_END_MM, 0.45 * L, 0.68 * L, L],
-                          [1.25, 1.0, 0.88, 0.92])
-        roundness = np.interp(-z, [METAPHYSIS_END_MM, 0.5 * L, 0.75 * L, L],
-                              [0.15, 0.2, 0.45, 0.5])
+        depth = -z / self.length
+        scale = np.interp(depth, *zip(*SHAFT_SCALE_PROFILE))
+        roundness = np.interp(depth, *zip(*SHAFT_ROUNDNESS_PROFILE))
         us, vs = u / scale, v / scale
         tri = _soft_polygon_sdf(us, vs, SHAFT_TRIANGLE, SHAFT_CORNER_SOFTNESS_MM)
         ell = _ellipse_sdf(us, vs, (0.0, 0.0), SHAFT_ELLIPSE_SEMI_AXES)
@@ -390,7 +396,7 @@ class _RightLegDesign:
         sx, sy = self.shaft_centre(z)
         u, v = _rotate(x - sx, y - sy, -self.twist(z))
         w_flare = np.clip((z - self.z_tip - DISTAL_FLARE_START_MM)
-                          / (DISTAL_FLARE_END_MM - DISTAL_FLARE_START_MM), 0.0, 1.0) ** 2
+                          / (DISTAL_WALL_MM - DISTAL_FLARE_START_MM), 0.0, 1.0) ** 2
         lower = (1.0 - w_flare) * self._shaft_sdf(u, v, z) + w_flare * self._distal_sdf(u, v)
         w = self.metaphysis_weight(z)
         f = (1.0 - w) * self._plateau_sdf(x, y) + w * lower
@@ -580,16 +586,16 @@ def _build_tibia(design: _RightLegDesign) -> trimesh.Trimesh:
     z_walls = _ring_heights(design.z_top_wall, design.z_bottom_wall,
                             _tibia_wall_spacing(design))
     cx, cy = design.ray_centre(z_walls)
-    # The fibula only comes close to the tibia at the two tibiofibular joints;
-    # elsewhere the (costly) carving is skipped. Each group is cast separately
-    # so that the windowed distal clearance is only computed where needed.
-    proximal = z_walls > -METAPHYSIS_END_MM - 20.0
+    # The fibula only comes close to the tibia at the two tibiofibular joints
+    # (head under the lateral condyle, distal syndesmosis); elsewhere the costly
+    # carving is skipped. Each group is cast separately so that the windowed
+    # distal clearance is only computed where needed.
+    proximal = z_walls > -METAPHYSIS_END_MM
     distal = z_walls < design.z_tip + DISTAL_FLARE_START_MM
     radii = np.empty((len(z_walls), n))
     for rows, carve in ((proximal, True), (distal, True), (~(proximal | distal), False)):
-        radii[rows] = _radial_hull(
-            lambda x, y, z: design.tibia_sdf(x, y, z, carve=carve),
-            cx[rows], cy[rows], z_walls[rows], theta)
+        radii[rows] = _radial_hull(partial(design.tibia_sdf, carve=carve),
+                                   cx[rows], cy[rows], z_walls[rows], theta)
 
     def cap(ring_radius: Array, centre: tuple[float, float], pole_xy: tuple[float, float],
             height: Callable[[Array, Array], Array], edge: float, sign: float,
@@ -629,7 +635,7 @@ def _build_tibia(design: _RightLegDesign) -> trimesh.Trimesh:
                       np.broadcast_to(z_walls[:, None], radii.shape)], axis=-1)
     # Vertical transition rings between the (non-planar) cap rims and the
     # first/last planar wall ring.
-    t = np.linspace(0.0, 1.0, 5)[1:-1, None]
+    t = np.linspace(0.0, 1.0, RIM_TRANSITION_RINGS + 2)[1:-1, None]
     top_rim, bottom_rim = top_rings[-1], bottom_rings[-1]
     top_join = top_rim + t[..., None] * (walls[0] - top_rim)
     bottom_join = walls[-1] + t[..., None] * (bottom_rim - walls[-1])
