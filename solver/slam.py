@@ -217,15 +217,18 @@ def _gate_inputs(problem: JointProblem, initial: InitialGuess) -> str | None:
     return None
 
 
-def _residual_rms(terms: list[Term], state: State) -> dict[str, float]:
-    """RMS of the whitened residuals of each energy term (in units of its sigma)."""
+def _residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int]:
+    """RMS of the whitened residuals of each energy term (in units of its sigma), and the
+    total number of residuals (for the degrees of freedom of the fit)."""
     sums: dict[str, list[float]] = {}
+    total = 0
     for term in terms:
         r = term.linearize(state, jacobians=False).residuals
         acc = sums.setdefault(term.name, [0.0, 0])
         acc[0] += float(np.sum(r**2))
         acc[1] += r.shape[0]
-    return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}
+        total += r.size
+    return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
 
 
 def solve_joint(
@@ -262,8 +265,8 @@ def solve_joint(
 
     # Coarse alignment on silhouettes: views on the bone, then pins with the views held,
     # each with a robust scale shrinking from wide (large basin) to tight.
-    bone = problem.bone
-    poses = tuple(align_view_in_image(bone.contour, T, view.camera, view.distance_map("bone"))
+    poses = tuple(align_view_in_image(problem.bone.contour, T, view.camera,
+                                      view.distance_map("bone"))
                   for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
     state = State(poses, np.zeros((0, 3)))
     iterations, seconds = 0, 0.0
@@ -282,7 +285,7 @@ def solve_joint(
                                       stage("joint"))
     report = SolveReport(fine.converged, fine.reason, iterations + fine.iterations,
                          fine.cost, fine.term_costs, seconds + fine.seconds, fine.history)
-    rms = _residual_rms(terms, state)
+    rms, n_residuals = _residual_rms(terms, state)
     rms_px = rms.get("E_rp", 0.0) * config.sigma_px
     if not fine.converged:
         return not_measured(f"the solve did not converge ({fine.reason})", state, report, rms)
@@ -299,7 +302,7 @@ def solve_joint(
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
     cov = pose_covariance(terms, state, fixed)
     pin_slice = slice(6 * problem.n_views, 6 * (problem.n_views + 2))
-    dof = sum(t.linearize(state, False).residuals.size for t in terms) - len(points) * 3 - fixed.size
+    dof = n_residuals - len(points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
     angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
                                  plan.pin_length(), plan.landmarks)
