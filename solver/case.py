@@ -71,6 +71,20 @@ def _load_calibration(path: Path) -> tuple[Camera, str]:
     return Camera.from_json(doc["camera"]), str(doc["id"])
 
 
+def _odometry_sigma(initial_doc: dict) -> tuple[float, float] | None:
+    """The encoders' relative-motion uncertainty from initial.json, if it states one."""
+    sigma = initial_doc.get("odometry_sigma")
+    if sigma is None:
+        return None
+    try:
+        rot, trans = float(sigma["rot_rad"]), float(sigma["trans_mm"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError("initial.json: odometry_sigma needs numbers rot_rad and trans_mm") from None
+    if not (rot > 0 and trans > 0):
+        raise ValueError("initial.json: odometry_sigma must be positive")
+    return rot, trans
+
+
 def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservation],
                initial: InitialGuess, calibration_id: str, truth: dict | None = None) -> None:
     folder = Path(folder)
@@ -88,6 +102,8 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
     (folder / "initial.json").write_text(json.dumps({
         "views": {v.view_id: T.to_json() for v, T in zip(views, initial.T_cam_tibia)},
         "pins": [T.to_json() for T in initial.T_tibia_pin],
+        "odometry_sigma": (None if initial.odometry_sigma is None else
+                           {"rot_rad": initial.odometry_sigma[0], "trans_mm": initial.odometry_sigma[1]}),
     }, indent=2))
     manifest = {"format": CASE_FORMAT, "case_id": case_id, "plan": "plan",
                 "calibration": "calibration.json", "contours": "contours.json",
@@ -121,4 +137,5 @@ def load_case(folder: Path) -> Case:
     if len(pins) != 2:
         raise ValueError(f"initial.json must give exactly two pin poses, found {len(pins)}")
     return Case(folder, str(manifest.get("case_id", folder.name)), plan, views,
-                InitialGuess(tuple(poses), (pins[0], pins[1])), calibration_id)
+                InitialGuess(tuple(poses), (pins[0], pins[1]), _odometry_sigma(initial_doc)),
+                calibration_id)

@@ -15,6 +15,8 @@ import numpy as np
 
 __all__ = ["Pose", "hat", "so3_exp", "so3_log", "rotation_about", "look_at"]
 
+_I3 = np.eye(3)
+
 
 def hat(v: np.ndarray) -> np.ndarray:
     """Skew-symmetric matrices ``[v]x`` for one (3,) or many (N, 3) vectors."""
@@ -73,7 +75,12 @@ class Pose:
     def __post_init__(self) -> None:
         R = np.asarray(self.R, dtype=float).reshape(3, 3)
         t = np.asarray(self.t, dtype=float).reshape(3)
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        # Orthonormal with determinant +1; written out because poses are made in hot loops.
+        orthonormal = np.abs(R.T @ R - _I3).max() <= 1e-6
+        det = (R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1])
+               - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0])
+               + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0]))
+        if not orthonormal or det < 0:
             raise ValueError("Pose rotation is not a proper rotation matrix")
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)

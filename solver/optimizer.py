@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import numpy as np
+from scipy import sparse
 
 from .geometry import Pose
 
@@ -83,10 +84,14 @@ class RobustLoss:
 
 @dataclass
 class Linearization:
-    """Whitened residuals (N, m) of one term with the Jacobians of the variables they touch."""
+    """Whitened residuals (N, m) of one term with the Jacobians of the variables they touch.
+
+    ``pose_jacobians`` holds ``(pose index, (N, m, 6))`` for each pose the term touches;
+    ``point_jacobian`` holds ``(point ids (N,), (N, m, 3))``, one distinct point per residual
+    block."""
 
     residuals: np.ndarray
-    pose_jacobians: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    pose_jacobians: list[tuple[int, np.ndarray]] = field(default_factory=list)
     point_jacobian: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -158,6 +163,14 @@ class NormalEquations:
     H_px: np.ndarray  # (K, 6, 3)
 
 
+def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Rows of ``values`` summed by ``index`` into ``n`` bins (a vectorised scatter-add)."""
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
+    selector = sparse.csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))),
+                                 shape=(n, len(index)))
+    return np.asarray(selector @ flat).reshape((n,) + values.shape[1:])
+
+
 def build_normal_equations(
     terms: list[Term], lins: list[Linearization], n_poses: int, n_points: int
 ) -> NormalEquations:
@@ -170,23 +183,24 @@ def build_normal_equations(
     for term, lin in zip(terms, lins):
         s = np.sum(lin.residuals**2, axis=1)
         w = term.weight * term.loss.weight(s)  # (N,)
-        wr = w[:, None] * lin.residuals  # (N, m)
-        for a_idx, Ja in lin.pose_jacobians:
-            np.add.at(g_blocks, a_idx, np.einsum("nmi,nm->ni", Ja, wr))
-            for b_idx, Jb in lin.pose_jacobians:
-                np.add.at(H_blocks, (a_idx, b_idx), np.einsum("nmi,n,nmj->nij", Ja, w, Jb))
+        wr = (w[:, None] * lin.residuals).reshape(-1)  # (N*m,)
+        sqrt_w = np.sqrt(w)[:, None, None]
+        for a, Ja in lin.pose_jacobians:
+            Ja_flat = Ja.reshape(-1, 6)
+            g_blocks[a] += Ja_flat.T @ wr
+            for b, Jb in lin.pose_jacobians:
+                H_blocks[a, b] += (sqrt_w * Ja).reshape(-1, 6).T @ (sqrt_w * Jb).reshape(-1, 6)
         if lin.point_jacobian is not None:
             x_idx, Jx = lin.point_jacobian
-            np.add.at(H_xx, x_idx, np.einsum("nmi,n,nmj->nij", Jx, w, Jx))
-            np.add.at(g_x, x_idx, np.einsum("nmi,nm->ni", Jx, wr))
-            for a_idx, Ja in lin.pose_jacobians:
-                coupling_keys.append(x_idx * P + a_idx)
-                coupling_vals.append(np.einsum("nmi,n,nmj->nij", Ja, w, Jx))
+            Jx_w = w[:, None, None] * Jx
+            H_xx[x_idx] += np.einsum("nmi,nmj->nij", Jx_w, Jx)
+            g_x[x_idx] += np.einsum("nmi,nm->ni", Jx, wr.reshape(lin.residuals.shape))
+            for a, Ja in lin.pose_jacobians:
+                coupling_keys.append(x_idx * P + a)
+                coupling_vals.append(np.einsum("nmi,nmj->nij", Ja, Jx_w))
     if coupling_keys:
-        keys = np.concatenate(coupling_keys)
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        H_px = np.zeros((len(uniq), 6, 3))
-        np.add.at(H_px, inverse, np.concatenate(coupling_vals))
+        uniq, inverse = np.unique(np.concatenate(coupling_keys), return_inverse=True)
+        H_px = _sum_by_index(inverse, np.concatenate(coupling_vals), len(uniq))
     else:
         uniq, H_px = np.zeros(0, np.int64), np.zeros((0, 6, 3))
     return NormalEquations(
@@ -225,11 +239,14 @@ def _reduced_system(
     pose_of[ne.pair_point, slot] = ne.pair_pose
 
     Y = W @ V_inv[:, None]  # (X, k, 6, 3)
-    reduction = np.einsum("xaij,xbkj->xabik", Y, W)  # (X, k, k, 6, 6)
     blocks = np.zeros((P + 1, P + 1, 6, 6))
-    np.add.at(blocks, (pose_of[:, :, None], pose_of[:, None, :]), reduction)
-    g_shift = np.zeros((P + 1, 6))
-    np.add.at(g_shift, pose_of, np.einsum("xaij,xj->xai", Y, ne.g_x))
+    for a in range(k_max):
+        for b in range(k_max):
+            pair = pose_of[:, a] * (P + 1) + pose_of[:, b]
+            reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
+            blocks += _sum_by_index(pair, reduction, (P + 1) ** 2).reshape(blocks.shape)
+    g_shift = _sum_by_index(pose_of.reshape(-1), np.einsum("xaij,xj->xai", Y, ne.g_x)
+                            .reshape(-1, 6), P + 1)
 
     H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
     S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)

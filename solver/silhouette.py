@@ -65,6 +65,13 @@ class ContourGenerator:
                      shift=_SUBPIXEL_BITS)
         return mask
 
+    def interior(self, T_cam_model: Pose, camera: Camera) -> np.ndarray:
+        """Mask (1/4 resolution) of the footprint's interior, more than a mask pixel deep.
+
+        Contour generators that project into it are interior folds, not the outer outline.
+        It changes slowly with the pose, so callers may reuse it for nearby poses."""
+        return cv2.erode(self.footprint(T_cam_model, camera), np.ones((3, 3), np.uint8))
+
     def outline_points(
         self,
         T_cam_model: Pose,
@@ -72,11 +79,13 @@ class ContourGenerator:
         spacing_px: float,
         outer_only: bool = True,
         fov_margin_px: float = 2.0,
+        interior: np.ndarray | None = None,
     ) -> np.ndarray:
         """Model-frame points (N, 3) sampled every ~``spacing_px`` along the visible outline.
 
         Only points projecting inside the camera's field of view are returned; with
-        ``outer_only`` interior folds are dropped.
+        ``outer_only`` interior folds are dropped, using ``interior`` (see :meth:`interior`)
+        when given, else the footprint of this pose.
         """
         source = T_cam_model.inverse().t
         front = self._front_facing(source)
@@ -97,9 +106,9 @@ class ContourGenerator:
 
         keep = camera.in_field(uv, fov_margin_px)
         if outer_only and np.any(keep):
-            mask = self.footprint(T_cam_model, camera)
-            inside_depth = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
+            if interior is None:
+                interior = self.interior(T_cam_model, camera)
             pix = np.clip(np.round(uv / _MASK_DOWNSCALE).astype(int), 0,
-                          np.array(mask.shape[::-1]) - 1)
-            keep &= inside_depth[pix[:, 1], pix[:, 0]] <= 1.0
+                          np.array(interior.shape[::-1]) - 1)
+            keep &= interior[pix[:, 1], pix[:, 0]] == 0
         return points[keep]

@@ -40,6 +40,9 @@ class SimulationConfig:
     noise_px: float = 2.0
     init_rot_sd_rad: float = 0.1
     init_trans_sd_mm: float = 20.0
+    # Error of the encoders' C-arm motion from the first view to each other one, about the knee.
+    encoder_rot_sd_deg: float = 0.5
+    encoder_trans_sd_mm: float = 2.0
     outline_spacing_px: float = 1.0
     seed: int = 0
 
@@ -150,10 +153,17 @@ def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> 
             contours[label] = _observe(pin_full, T_cam_tibia @ T_tibia_pin, camera, False,
                                        config, rng)
         views.append(ViewObservation(f"view{k + 1}", camera, contours))
+    # The patient set-up (where the tibia lies in the C-arm) is the large, shared unknown;
+    # the motion between views comes from the encoders with their own, smaller error.
     T_tibia_anat = plan.landmarks.T_tibia_anat()
+    setup_error = perturb(Pose.identity(), rng, config.init_rot_sd_rad, config.init_trans_sd_mm,
+                          T_tibia_anat)
+    encoder_rad = np.radians(config.encoder_rot_sd_deg)
     initial = InitialGuess(
-        tuple(perturb(T, rng, config.init_rot_sd_rad, config.init_trans_sd_mm, T_tibia_anat)
-              for T in views_true),
+        tuple(T @ setup_error if k == 0 else
+              perturb(T @ setup_error, rng, encoder_rad, config.encoder_trans_sd_mm, T_tibia_anat)
+              for k, T in enumerate(views_true)),
         tuple(perturb(T, rng, config.init_rot_sd_rad, config.init_trans_sd_mm) for T in pins),
+        (encoder_rad, config.encoder_trans_sd_mm),
     )
     return SimulatedCase(plan, views, initial, views_true, pins, ctr_deg, str_deg, config)

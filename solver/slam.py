@@ -36,17 +36,23 @@ from .optimizer import (
     pose_covariance,
 )
 from .plan import Plan, RigidModel
-from .terms import BackProjectionTerm, ModelProjectionTerm, ReprojectionTerm
+from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
 __all__ = ["InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 
 
 @dataclass(frozen=True)
 class InitialGuess:
-    """Starting poses: each view from the encoders, each pin from the planned resection."""
+    """Starting poses: each view from the encoders, each pin from the planned resection.
+
+    ``odometry_sigma`` (rad, mm), when given, says that the motion between the views'
+    poses was measured by the C-arm's encoders with that uncertainty (about the knee); the
+    solver then keeps it as a relative-pose factor (E_odo), not only as a starting point.
+    """
 
     T_cam_tibia: tuple[Pose, ...]
     T_tibia_pin: tuple[Pose, Pose]
+    odometry_sigma: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -66,6 +72,7 @@ class SolverConfig:
     min_pin_points: int = 20
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
     max_angle_sigma_deg: float = 2.0
+    use_odometry: bool = True  # keep the encoders' relative motion as a factor (E_odo)
 
 
 @dataclass
@@ -184,6 +191,16 @@ class JointProblem:
                     outer_only=(label == "bone"), weight=weight, loss=loss))
         return terms
 
+    def odometry_terms(self, initial: InitialGuess) -> list[Term]:
+        """E_odo between the first view and each other one, if the encoders measured it."""
+        if initial.odometry_sigma is None or not self.config.use_odometry:
+            return []
+        sigma_rad, sigma_mm = initial.odometry_sigma
+        anchor = self.plan.landmarks.T_tibia_anat()
+        first = initial.T_cam_tibia[0]
+        return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, sigma_rad, sigma_mm)
+                for k, T in enumerate(initial.T_cam_tibia) if k > 0]
+
     def edge_terms(self, ranges: dict) -> list[Term]:
         c = self.config
         terms: list[Term] = []
@@ -270,17 +287,23 @@ def solve_joint(
                   for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
     state = State(poses, np.zeros((0, 3)))
     iterations, seconds = 0, 0.0
-    for labels, held in ((("bone",), problem.fixed_dofs(pins=True)),
-                         (PIN_LABELS, problem.fixed_dofs(views=True))):
+    odometry = problem.odometry_terms(initial)
+    for labels, held, extra in ((("bone",), problem.fixed_dofs(pins=True), odometry),
+                                (PIN_LABELS, problem.fixed_dofs(views=True), [])):
         for scale in config.coarse_loss_scales:
-            terms = problem.silhouette_terms(labels, 1.0, RobustLoss("cauchy", scale))
+            terms = problem.silhouette_terms(labels, 1.0, RobustLoss("cauchy", scale)) + extra
             state, coarse = levenberg_marquardt(terms, state, held, config.coarse,
                                                 stage(f"coarse {'+'.join(labels)} x{scale:g}"))
             iterations += coarse.iterations
             seconds += coarse.seconds
+    # Then all silhouettes at once: the pins, seen in every view, tie the views together.
+    terms = problem.silhouette_terms(LABELS, 1.0, RobustLoss("cauchy", config.coarse_loss_scales[-1])) + odometry
+    state, coarse = levenberg_marquardt(terms, state, fixed, config.coarse, stage("coarse all"))
+    iterations += coarse.iterations
+    seconds += coarse.seconds
     points, ranges = problem.seated_points(state.poses)
     terms = problem.edge_terms(ranges) + problem.silhouette_terms(
-        LABELS, config.w_mp, RobustLoss("cauchy", 3.0))
+        LABELS, config.w_mp, RobustLoss("cauchy", 3.0)) + odometry
     state, fine = levenberg_marquardt(terms, State(state.poses, points), fixed, config.fine,
                                       stage("joint"))
     report = SolveReport(fine.converged, fine.reason, iterations + fine.iterations,

@@ -29,8 +29,7 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
     checked = set()
     for term in terms:
         lin = term.linearize(state)
-        for pose_ids, J in lin.pose_jacobians:
-            p = int(pose_ids[0])
+        for p, J in lin.pose_jacobians:
             for dof in range(6):
                 eps = 1e-6
                 d = np.zeros((n_poses, 6))
