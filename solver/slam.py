@@ -4,10 +4,14 @@ Problem layout (DESIGN.md section 4): poses ``[T_cam0_tibia, ..., T_camV-1_tibia
 T_tibia_pin1, T_tibia_pin2]`` and one 3D point per kept contour pixel (bone points in the
 tibia frame, pin points in their pin's frame). The schedule:
 
-1. coarse alignment on the silhouettes alone (E_mp, poses only) from the encoder guess;
-2. edge points seated on their observed rays where each ray grazes its model;
-3. joint Levenberg-Marquardt on ``w_rp E_rp + w_bp E_bp + w_mp E_mp``;
-4. quality gates, the resection plane, and its covariance-based uncertainty.
+1. each view's bone found in its image by an exhaustive shift/rotation search;
+2. silhouettes alone (E_mp, poses only): the views on the bone (annealed robust scale,
+   tied together by the encoders' relative motion E_odo), the pins triangulated from their
+   contours and refined, then every silhouette at once;
+3. edge points seated on their observed rays where each ray grazes its model;
+4. joint Levenberg-Marquardt on ``w_rp E_rp + w_bp E_bp + w_mp E_mp (+ E_odo)``, with the
+   silhouettes traced once at its start (the problem is then smooth);
+5. quality gates, the resection plane, and its covariance-based uncertainty.
 
 A pin's roll about its own axis is unobservable (a cylinder), so that direction is fixed.
 """
@@ -36,6 +40,7 @@ from .optimizer import (
     pose_covariance,
 )
 from .plan import Plan, RigidModel
+from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
 __all__ = ["InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
@@ -62,11 +67,11 @@ class SolverConfig:
     w_rp: float = 1.0
     w_bp: float = 1.0
     w_mp: float = 0.1
-    edge_spacing_px: float = 4.0  # observed contours are thinned to this spacing
-    silhouette_spacing_px: float = 3.0
-    coarse: LMOptions = LMOptions(max_iterations=15, relative_tolerance=1e-3)
+    edge_spacing_px: float = 6.0  # observed contours are thinned to this spacing
+    silhouette_spacing_px: float = 5.0
+    coarse: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
-    fine: LMOptions = LMOptions(max_iterations=40, relative_tolerance=1e-4, step_tolerance=1e-5)
+    fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=2e-3, step_tolerance=1e-3)
     min_view_separation_deg: float = 15.0
     min_bone_points: int = 50
     min_pin_points: int = 20
@@ -121,8 +126,14 @@ def seat_on_rays(
     T_body_cam = T_cam_body.inverse()
     samples = (rays[:, None, :] * z[None, :, None]).reshape(-1, 3)
     d = model.sdf.query(T_body_cam.apply(samples))[0].reshape(len(pixels), len(z))
-    best = np.argmin(np.abs(d), axis=1)
-    return T_body_cam.apply(rays * z[best, None])
+    best = np.clip(np.argmin(np.abs(d), axis=1), 1, len(z) - 2)
+    # Near a grazing point the distance along the ray is a parabola: refine to its vertex.
+    rows = np.arange(len(pixels))
+    d_minus, d_0, d_plus = d[rows, best - 1], d[rows, best], d[rows, best + 1]
+    curvature = d_plus - 2.0 * d_0 + d_minus
+    shift = np.where(curvature > 1e-9, 0.5 * (d_minus - d_plus) / np.maximum(curvature, 1e-9), 0.0)
+    depth = z[best] + np.clip(shift, -1.0, 1.0) * step_mm
+    return T_body_cam.apply(rays * depth[:, None])
 
 
 def _view_separation_deg(views: list[Pose]) -> float:
@@ -162,6 +173,17 @@ class JointProblem:
         body = self.body_index(label)
         return poses[k] if body is None else poses[k] @ poses[body]
 
+    def triangulated_pins(self, poses: tuple[Pose, ...]) -> tuple[Pose, ...]:
+        """Each pin's pose triangulated from its contours in the views at ``poses`` (the
+        current pin pose where it cannot be)."""
+        pins = []
+        for label in PIN_LABELS:
+            current = poses[self.body_index(label)]
+            sightings = [PinSighting(view.camera, poses[k], self.pixels[k, label])
+                         for k, view in enumerate(self.views)]
+            pins.append(triangulate_pin(sightings, current) or current)
+        return tuple(pins)
+
     def seated_points(self, poses: tuple[Pose, ...]) -> tuple[np.ndarray, dict]:
         """Edge points seated on their rays for ``poses``, with the id range of each group."""
         chunks, ranges, start = [], {}, 0
@@ -176,8 +198,8 @@ class JointProblem:
         points = np.vstack(chunks) if chunks else np.zeros((0, 3))
         return points, ranges
 
-    def silhouette_terms(self, labels: tuple[str, ...], weight: float,
-                         loss: RobustLoss) -> list[Term]:
+    def silhouette_terms(self, labels: tuple[str, ...], weight: float, loss: RobustLoss,
+                         freeze_outline: bool = False) -> list[Term]:
         c = self.config
         terms: list[Term] = []
         for k, view in enumerate(self.views):
@@ -188,7 +210,8 @@ class JointProblem:
                     "E_mp", k, self.body_index(label), view.camera, self.model(label).contour,
                     view.distance_map(label), self.pixels[k, label], c.sigma_px,
                     c.silhouette_spacing_px,
-                    outer_only=(label == "bone"), weight=weight, loss=loss))
+                    outer_only=(label == "bone"), weight=weight, loss=loss,
+                    freeze_outline=freeze_outline))
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:
@@ -280,30 +303,35 @@ def solve_joint(
     def stage(name: str):
         return None if callback is None else (lambda info: callback(name, info))
 
-    # Coarse alignment on silhouettes: views on the bone, then pins with the views held,
-    # each with a robust scale shrinking from wide (large basin) to tight.
+    # Global step: where in each image is the bone?
     poses = tuple(align_view_in_image(problem.bone.contour, T, view.camera,
                                       view.distance_map("bone"))
                   for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
     state = State(poses, np.zeros((0, 3)))
     iterations, seconds = 0, 0.0
     odometry = problem.odometry_terms(initial)
-    for labels, held, extra in ((("bone",), problem.fixed_dofs(pins=True), odometry),
-                                (PIN_LABELS, problem.fixed_dofs(views=True), [])):
-        for scale in config.coarse_loss_scales:
-            terms = problem.silhouette_terms(labels, 1.0, RobustLoss("cauchy", scale)) + extra
-            state, coarse = levenberg_marquardt(terms, state, held, config.coarse,
-                                                stage(f"coarse {'+'.join(labels)} x{scale:g}"))
-            iterations += coarse.iterations
-            seconds += coarse.seconds
-    # Then all silhouettes at once: the pins, seen in every view, tie the views together.
-    terms = problem.silhouette_terms(LABELS, 1.0, RobustLoss("cauchy", config.coarse_loss_scales[-1])) + odometry
-    state, coarse = levenberg_marquardt(terms, state, fixed, config.coarse, stage("coarse all"))
-    iterations += coarse.iterations
-    seconds += coarse.seconds
+
+    def run(terms: list[Term], held: np.ndarray, name: str) -> None:
+        nonlocal state, iterations, seconds
+        state, report = levenberg_marquardt(terms, state, held, config.coarse, stage(name))
+        iterations += report.iterations
+        seconds += report.seconds
+
+    # Views on the bone's silhouette, with a robust scale shrinking from wide to tight;
+    # then the pins placed where their contours triangulate, refined on their silhouettes
+    # with the views held; then every silhouette at once, the pins tying the views together.
+    for scale in config.coarse_loss_scales:
+        run(problem.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale)) + odometry,
+            problem.fixed_dofs(pins=True), f"coarse bone x{scale:g}")
+    state = State(state.poses[: problem.n_views] + problem.triangulated_pins(state.poses),
+                  state.points)
+    tight = RobustLoss("cauchy", config.coarse_loss_scales[-1])
+    run(problem.silhouette_terms(PIN_LABELS, 1.0, tight), problem.fixed_dofs(views=True),
+        "coarse pins")
+    run(problem.silhouette_terms(LABELS, 1.0, tight) + odometry, fixed, "coarse all")
     points, ranges = problem.seated_points(state.poses)
     terms = problem.edge_terms(ranges) + problem.silhouette_terms(
-        LABELS, config.w_mp, RobustLoss("cauchy", 3.0)) + odometry
+        LABELS, config.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + odometry
     state, fine = levenberg_marquardt(terms, State(state.poses, points), fixed, config.fine,
                                       stage("joint"))
     report = SolveReport(fine.converged, fine.reason, iterations + fine.iterations,

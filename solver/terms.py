@@ -118,9 +118,11 @@ class BackProjectionTerm:
 class ModelProjectionTerm:
     """E_mp: the projected model silhouette and the observed contour lie on each other.
 
-    The silhouette is traced exactly at every evaluation; only the footprint interior that
-    tells outer outline from interior folds (the expensive part) is refreshed once per
-    optimiser iteration, when Jacobians are requested.
+    The silhouette is traced when Jacobians are requested (once per optimiser iteration)
+    and its model-frame points are held while steps are tried, the usual fixed-
+    correspondence approximation (tracing is the expensive part). With ``freeze_outline``
+    it is traced once and then held, for a final refinement that starts from converged
+    silhouettes: that problem is smooth, so its convergence tests are meaningful.
 
     Two-sided, so that neither can be ignored: every silhouette point inside the field of
     view is charged its distance to the observed contour (distance map), and every observed
@@ -140,18 +142,18 @@ class ModelProjectionTerm:
     outer_only: bool = True
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("cauchy", 3.0)
-    _interior: np.ndarray | None = field(default=None, init=False, repr=False)
+    freeze_outline: bool = False
+    _outline: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def _T_cam_body(self, state: State):
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        T_cam_body = self._T_cam_body(state)
-        if self.outer_only and (jacobians or self._interior is None):
-            self._interior = self.contour.interior(T_cam_body, self.camera)
-        S = self.contour.outline_points(T_cam_body, self.camera, self.spacing_px,
-                                        outer_only=self.outer_only, interior=self._interior)
+        if self._outline is None or (jacobians and not self.freeze_outline):
+            self._outline = self.contour.outline_points(
+                self._T_cam_body(state), self.camera, self.spacing_px, outer_only=self.outer_only)
+        S = self._outline
         if len(S) == 0:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)

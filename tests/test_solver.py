@@ -19,7 +19,7 @@ def _linearized_problem(plan, seed=0):
     from solver.optimizer import RobustLoss
 
     terms = problem.edge_terms(ranges) + problem.silhouette_terms(
-        ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0))
+        ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0)) + problem.odometry_terms(case.initial)
     return case, problem, State(poses, points), terms
 
 
@@ -53,7 +53,7 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
                 err = np.abs(fd - J[:, :, dof])
                 assert np.mean(err < 1e-3 * (1 + np.abs(J[:, :, dof]))) > 0.97, (term.name, dof)
                 checked.add(term.name)
-    assert checked == {"E_rp", "E_bp", "E_mp"}
+    assert checked == {"E_rp", "E_bp", "E_mp", "E_odo"}
 
 
 def test_schur_step_equals_the_dense_solution(real_plan):
@@ -137,3 +137,26 @@ def test_callback_reports_every_iteration(real_plan):
     stages = {s for s, _ in seen}
     assert "joint" in stages and any(s.startswith("coarse") for s in stages)
     assert all(np.isfinite(c) for _, c in seen)
+
+
+def test_pins_triangulate_from_their_contours(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=4))
+    problem = JointProblem(real_plan, case.views, SolverConfig())
+    planned = tuple(case.initial.T_tibia_pin)
+    pins = problem.triangulated_pins(tuple(case.truth_T_cam_tibia) + planned)
+    for found, truth in zip(pins, case.truth_T_tibia_pin):
+        assert np.degrees(np.arccos(found.R[:, 2] @ truth.R[:, 2])) < 1.5
+        assert np.linalg.norm(found.t - truth.t) < 4.0
+
+
+def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
+    case = simulate_case(real_plan, SimulationConfig(seed=5))
+    problem = JointProblem(real_plan, case.views, SolverConfig())
+    (term,) = problem.odometry_terms(case.initial)
+    state = State(tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin), np.zeros((0, 3)))
+    assert np.allclose(term.linearize(state, False).residuals, 0.0, atol=1e-9)
+    # Moving one view by the encoder sigma about the knee costs one sigma.
+    anchor = real_plan.landmarks.T_tibia_anat()
+    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, term.sigma_rad]) @ anchor.inverse()
+    r = term.linearize(State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
+    assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
