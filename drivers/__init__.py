@@ -1,0 +1,1 @@
+"""The C-arm link: encoder protocol, serial driver, kinematics and the simulated C-arm."""

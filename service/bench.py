@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.bench_link import add_link_bench
+from service.bench_service import add_service_bench_parser
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, simulate_case
 from solver.slam import SolverConfig, solve_joint
@@ -148,3 +150,5 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=run_accuracy)
+    add_link_bench(kinds)
+    add_service_bench_parser(kinds)

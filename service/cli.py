@@ -14,6 +14,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from drivers.carm_sim import add_carm_sim_parser
 from solver.case import load_case, write_case
 from solver.plan import Plan
 from solver.result import result_document
@@ -21,6 +22,11 @@ from solver.simulate import SimulationConfig, simulate_case
 from solver.slam import SolverConfig, solve_joint
 
 from .bench import add_bench_parser
+from .plans import add_plan_parser
+from .replay import add_replay_parser
+from .serve import add_serve_parser
+from .status import add_status_parser
+from .theatre import add_theatre_parser
 
 log = logging.getLogger("slamtka")
 
@@ -146,6 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     add_bench_parser(sub)
+    add_carm_sim_parser(sub)
+    add_plan_parser(sub)
+    add_status_parser(sub)
+    add_replay_parser(sub)
+    add_serve_parser(sub)
+    add_theatre_parser(sub)
     return parser
 
 

@@ -1,0 +1,392 @@
+"""The service configuration: one TOML file, environment overrides, validated at start.
+
+Every key is declared by a typed dataclass field below, so an unknown key, a wrong type or an
+out-of-range value is refused with an error naming the key (``dicom.port: ...``) before the
+service opens a socket. Any scalar key can be overridden from the environment as
+``SLAMTKA_<SECTION>_<KEY>`` in capitals, e.g. ``SLAMTKA_DICOM_PORT=11113`` or
+``SLAMTKA_DICOM_TLS_ENABLED=true``; destinations are configured in the file only.
+``deploy/slamtka.example.toml`` documents every key.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+import re
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from solver.anatomy import Landmarks
+
+__all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
+           "load_config", "config_from_dict", "validate_ae_title", "ENV_PREFIX"]
+
+ENV_PREFIX = "SLAMTKA_"
+_AE_TITLE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE VR: no backslash, no control
+_OBJECT_KINDS = ("json", "sr", "sc")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, unknown, mistyped or out of range."""
+
+
+def validate_ae_title(value: str, where: str) -> str:
+    if not _AE_TITLE.match(value) or not value.strip():
+        raise ConfigError(f"{where}: {value!r} is not a valid AE title (1-16 printable "
+                          "characters, no backslash)")
+    return value.strip()
+
+
+def _check_range(where: str, value: float, low: float, high: float) -> None:
+    if not low <= value <= high:
+        raise ConfigError(f"{where}: {value} is outside [{low}, {high}]")
+
+
+@dataclass(frozen=True)
+class TlsConfig:
+    """Mutual TLS on the DICOM port: our certificate and key, the CAs clients must chain to."""
+
+    enabled: bool = False
+    certificate: Path | None = None
+    private_key: Path | None = None
+    ca_certificates: Path | None = None
+    min_version: str = "1.2"
+
+    def check(self, where: str) -> None:
+        if self.min_version not in ("1.2", "1.3"):
+            raise ConfigError(f"{where}.min_version: {self.min_version!r} must be '1.2' or '1.3'")
+        if self.enabled:
+            for name in ("certificate", "private_key", "ca_certificates"):
+                if getattr(self, name) is None:
+                    raise ConfigError(f"{where}.{name}: required when TLS is enabled")
+
+
+@dataclass(frozen=True)
+class DicomConfig:
+    """The receiving side (SCP) and the identity used when sending results."""
+
+    ae_title: str = "SLAMTKA"
+    bind_address: str = "127.0.0.1"
+    port: int = 11112
+    allowed_calling_ae_titles: list[str] = field(default_factory=list)
+    health_ae_title: str = "SLAMTKA_HEALTH"  # may associate and C-ECHO, never store
+    max_pdu_bytes: int = 262144
+    max_associations: int = 4
+    idle_timeout_s: float = 30.0
+    dimse_timeout_s: float = 30.0
+    tls: TlsConfig = field(default_factory=TlsConfig)
+
+    def check(self, where: str) -> None:
+        validate_ae_title(self.ae_title, f"{where}.ae_title")
+        if not self.allowed_calling_ae_titles:
+            raise ConfigError(f"{where}.allowed_calling_ae_titles: list the C-arms allowed to "
+                              "send (an empty list would refuse every association)")
+        for i, title in enumerate(self.allowed_calling_ae_titles):
+            validate_ae_title(title, f"{where}.allowed_calling_ae_titles[{i}]")
+        validate_ae_title(self.health_ae_title, f"{where}.health_ae_title")
+        if self.health_ae_title in self.allowed_calling_ae_titles:
+            raise ConfigError(f"{where}.health_ae_title: must differ from the sending C-arms' "
+                              "AE titles (it may not store)")
+        _check_range(f"{where}.port", self.port, 0, 65535)  # 0: any free port (tests)
+        _check_range(f"{where}.max_pdu_bytes", self.max_pdu_bytes, 4096, 16 * 1024 * 1024)
+        _check_range(f"{where}.max_associations", self.max_associations, 1, 64)
+        _check_range(f"{where}.idle_timeout_s", self.idle_timeout_s, 1.0, 3600.0)
+        _check_range(f"{where}.dimse_timeout_s", self.dimse_timeout_s, 1.0, 3600.0)
+        self.tls.check(f"{where}.tls")
+
+
+@dataclass(frozen=True)
+class Destination:
+    """A DICOM node that receives the results (OR display, PACS)."""
+
+    name: str = ""
+    ae_title: str = ""
+    host: str = ""
+    port: int = 104
+    objects: list[str] = field(default_factory=lambda: ["sr", "sc"])
+    tls: bool = False
+    ca_certificates: Path | None = None
+    certificate: Path | None = None
+    private_key: Path | None = None
+
+    def check(self, where: str) -> None:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", self.name):
+            raise ConfigError(f"{where}.name: {self.name!r} must be 1-40 letters, digits, _ . -")
+        validate_ae_title(self.ae_title, f"{where}.ae_title")
+        if not self.host:
+            raise ConfigError(f"{where}.host: required")
+        _check_range(f"{where}.port", self.port, 1, 65535)
+        bad = sorted(set(self.objects) - {"sr", "sc"})
+        if bad or not self.objects:
+            raise ConfigError(f"{where}.objects: {self.objects} must be a non-empty subset of "
+                              "['sr', 'sc']")
+        if self.tls and self.ca_certificates is None:
+            raise ConfigError(f"{where}.ca_certificates: required when tls = true")
+
+
+# Any plausible tibia, to check the patient set-up table before a plan is known.
+_NOMINAL_LANDMARKS = Landmarks(np.zeros(3), np.array([0.0, 0.0, -370.0]), np.array([0.0, 1.0, 0.0]),
+                               "right")
+
+
+@dataclass(frozen=True)
+class CarmConfig:
+    """The C-arm: its calibration, its encoder link, its kinematics and the patient set-up.
+
+    ``link``, ``kinematics`` and ``setup`` are passed to the drivers' ``LinkConfig``,
+    ``CArmKinematics`` and ``PatientSetup`` (absent keys take their defaults) and checked
+    by them at start.
+    """
+
+    calibration: Path | None = None
+    encoder_port: str = ""  # serial device; empty: no link, DICOM positioner angles only
+    max_reading_age_s: float = 0.1
+    angle_check_deg: float = 3.0  # encoder vs DICOM positioner beam direction
+    link: dict = field(default_factory=dict)
+    kinematics: dict = field(default_factory=dict)
+    setup: dict = field(default_factory=dict)
+
+    def check(self, where: str) -> None:
+        from drivers.encoder_link import LinkConfig
+        from drivers.kinematics import CArmKinematics, PatientSetup
+
+        if self.calibration is None:
+            raise ConfigError(f"{where}.calibration: the C-arm calibration file is required")
+        _check_range(f"{where}.angle_check_deg", self.angle_check_deg, 0.1, 45.0)
+        for key, parse in (("link", LinkConfig.from_config),
+                           ("kinematics", CArmKinematics.from_config)):
+            try:
+                parse(getattr(self, key))
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{where}.{key}: {exc}") from None
+        try:
+            PatientSetup.from_config(_NOMINAL_LANDMARKS, self.setup)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{where}.setup: {exc}") from None
+        link = LinkConfig.from_config(self.link)
+        _check_range(f"{where}.max_reading_age_s", self.max_reading_age_s, 0.001, link.max_age_s)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Case assembly and the measurement pipeline."""
+
+    min_view_separation_deg: float = 15.0
+    max_views: int = 6
+    manual_contours_dir: Path | None = None  # contour documents drawn by hand, by SOP UID
+
+    def check(self, where: str) -> None:
+        _check_range(f"{where}.min_view_separation_deg", self.min_view_separation_deg, 1.0, 90.0)
+        _check_range(f"{where}.max_views", self.max_views, 2, 16)
+
+
+@dataclass(frozen=True)
+class SenderConfig:
+    """The durable retry queue of outgoing C-STOREs."""
+
+    retry_initial_s: float = 2.0
+    retry_max_s: float = 300.0
+    max_attempts: int = 50
+    timeout_s: float = 30.0
+
+    def check(self, where: str) -> None:
+        _check_range(f"{where}.retry_initial_s", self.retry_initial_s, 0.01, 3600.0)
+        _check_range(f"{where}.retry_max_s", self.retry_max_s, self.retry_initial_s, 86400.0)
+        _check_range(f"{where}.max_attempts", self.max_attempts, 1, 100000)
+        _check_range(f"{where}.timeout_s", self.timeout_s, 1.0, 600.0)
+
+
+@dataclass(frozen=True)
+class ServiceConfig:
+    """The whole configuration; relative paths are relative to the TOML file."""
+
+    data_dir: Path = Path("/var/lib/slamtka")
+    plans_dir: Path | None = None  # default: data_dir/plans
+    output_dir: Path | None = None  # default: data_dir/output
+    institution: str = ""
+    dicom: DicomConfig = field(default_factory=DicomConfig)
+    carm: CarmConfig = field(default_factory=CarmConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    sender: SenderConfig = field(default_factory=SenderConfig)
+    destinations: list[Destination] = field(default_factory=list)
+    source: Path | None = None  # the TOML file this came from (not a key)
+
+    def check(self) -> None:
+        self.dicom.check("dicom")
+        self.carm.check("carm")
+        self.pipeline.check("pipeline")
+        self.sender.check("sender")
+        names = [d.name for d in self.destinations]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"destinations: names must be unique, got {names}")
+        for i, dest in enumerate(self.destinations):
+            dest.check(f"destinations[{i}]")
+
+    # Folders under data_dir (fixed names: an operator finds everything in one place).
+    @property
+    def spool_dir(self) -> Path:
+        return self.data_dir / "spool"
+
+    @property
+    def queue_dir(self) -> Path:
+        return self.data_dir / "queue"
+
+    @property
+    def audit_log(self) -> Path:
+        return self.data_dir / "audit.jsonl"
+
+    @property
+    def status_file(self) -> Path:
+        return self.data_dir / "status.json"
+
+    @property
+    def plans(self) -> Path:
+        return self.plans_dir or self.data_dir / "plans"
+
+    @property
+    def output(self) -> Path:
+        return self.output_dir or self.data_dir / "output"
+
+
+# -- generic typed construction --------------------------------------------------------------
+
+def _convert(value: Any, hint: Any, where: str, base: Path | None) -> Any:
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        options = [a for a in typing.get_args(hint) if a is not type(None)]
+        if value is None or value == "":
+            return None
+        return _convert(value, options[0], where, base)
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table")
+        return _build(hint, value, where, base)
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list")
+        (item,) = typing.get_args(hint)
+        return [_convert(v, item, f"{where}[{i}]", base) for i, v in enumerate(value)]
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    if hint is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a table")
+        return dict(value)
+    if hint is Path:
+        if not isinstance(value, (str, Path)):
+            raise ConfigError(f"{where}: expected a path, got {value!r}")
+        path = Path(value).expanduser()
+        return path if path.is_absolute() or base is None else base / path
+    raise ConfigError(f"{where}: unsupported type {hint}")  # a programming error, named
+
+
+def _build(cls: type, table: Mapping[str, Any], where: str, base: Path | None) -> Any:
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.name != "source"}
+    unknown = sorted(set(table) - names)
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ConfigError(f"{prefix}{unknown[0]}: unknown key (known: {', '.join(sorted(names))})")
+    kwargs = {key: _convert(value, hints[key], f"{where}.{key}" if where else key, base)
+              for key, value in table.items()}
+    return cls(**kwargs)
+
+
+def _parse_env_value(text: str, hint: Any, where: str) -> Any:
+    """An environment string as the TOML value it stands for."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        hint = [a for a in typing.get_args(hint) if a is not type(None)][0]
+    if hint is bool:
+        if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+            raise ConfigError(f"{where}: expected true or false, got {text!r}")
+        return text.lower() in ("true", "1", "yes")
+    try:
+        if hint is int:
+            return int(text)
+        if hint is float:
+            return float(text)
+    except ValueError:
+        raise ConfigError(f"{where}: {text!r} is not a number") from None
+    if typing.get_origin(hint) is list:
+        return [part.strip() for part in text.split(",") if part.strip()]
+    return text
+
+
+def _env_keys(cls: type, path: tuple[str, ...] = ()) -> dict[str, tuple[tuple[str, ...], Any]]:
+    """``SLAMTKA_...`` variable name -> (key path, type) for every overridable key."""
+    out = {}
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        if f.name in ("source", "destinations"):
+            continue
+        if dataclasses.is_dataclass(hint):
+            out.update(_env_keys(hint, path + (f.name,)))
+        elif hint is not dict:
+            key = path + (f.name,)
+            out[ENV_PREFIX + "_".join(key).upper()] = (key, hint)
+    return out
+
+
+def _apply_env(table: dict, environ: Mapping[str, str]) -> dict:
+    known = _env_keys(ServiceConfig)
+    sections = {f"{ENV_PREFIX}{name.upper()}_"
+                for name, hint in typing.get_type_hints(ServiceConfig).items()
+                if dataclasses.is_dataclass(hint)}
+    for name, text in environ.items():
+        if name not in known:
+            # A misspelt key of a known section is an error; other SLAMTKA_ names are not ours.
+            if any(name.startswith(prefix) for prefix in sections):
+                raise ConfigError(f"environment variable {name}: not a configuration key")
+            continue
+        path, hint = known[name]
+        node = table
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{'.'.join(path)}: expected a table in the file")
+        node[path[-1]] = _parse_env_value(text, hint, f"{name} ({'.'.join(path)})")
+    return table
+
+
+def config_from_dict(table: dict, base: Path | None = None,
+                     environ: Mapping[str, str] | None = None) -> ServiceConfig:
+    """A validated configuration from a parsed TOML table (and the environment)."""
+    table = _apply_env(copy.deepcopy(table), os.environ if environ is None else environ)
+    config = _build(ServiceConfig, table, "", base)
+    config.check()
+    return config
+
+
+def load_config(path: Path, environ: Mapping[str, str] | None = None) -> ServiceConfig:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: configuration file not found")
+    try:
+        table = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    config = config_from_dict(table, path.parent.resolve(), environ)
+    return dataclasses.replace(config, source=path.resolve())

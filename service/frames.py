@@ -1,0 +1,322 @@
+"""X-ray frames as DICOM: encode a C-arm image, decode one received over the network.
+
+A :class:`Frame` is one single-plane C-arm image with the geometry attributes the pipeline
+cross-checks (DESIGN.md section 6): positioner angles, source distances and the imager pixel
+spacing at the detector. :func:`encode_frame` writes it as X-Ray Angiographic Image Storage
+(default) or X-Ray Radiofluoroscopic Image Storage, as mobile C-arms send them; the result
+passes dicom3tools' ``dciodvfy``. :func:`decode_frame` accepts XA, RF, DX and Secondary
+Capture instances and raises :class:`FrameError` naming the attribute that is missing or
+invalid.
+
+Pixel convention: ``pixels`` is MONOCHROME2 (higher = brighter on display), unsigned 16 bit.
+A MONOCHROME1 instance is inverted on decode so downstream code sees one convention.
+Times are UTC-aware; an instance without a timezone offset is read as UTC.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.uid import (
+    UID,
+    ExplicitVRLittleEndian,
+    PYDICOM_IMPLEMENTATION_UID,
+    generate_uid,
+)
+
+__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "SOP_CLASSES",
+           "XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
+
+XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1")
+RF_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.2")
+DX_PRESENTATION_STORAGE = UID("1.2.840.10008.5.1.4.1.1.1.1")
+DX_PROCESSING_STORAGE = UID("1.2.840.10008.5.1.4.1.1.1.1.1")
+SECONDARY_CAPTURE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.7")
+
+# SOP class -> modality values accepted for it on decode.
+SOP_CLASSES: dict[str, tuple[str, ...]] = {
+    XA_IMAGE_STORAGE: ("XA",),
+    RF_IMAGE_STORAGE: ("RF",),
+    DX_PRESENTATION_STORAGE: ("DX",),
+    DX_PROCESSING_STORAGE: ("DX",),
+    SECONDARY_CAPTURE_STORAGE: ("XA", "RF", "DX", "OT"),
+}
+_ENCODABLE = {XA_IMAGE_STORAGE: "XA", RF_IMAGE_STORAGE: "RF"}
+
+
+class FrameError(ValueError):
+    """A DICOM instance that cannot be used as an X-ray frame; the message names why."""
+
+
+@dataclass
+class Frame:
+    """One C-arm image and the acquisition geometry recorded with it."""
+
+    pixels: np.ndarray  # (H, W) uint16, MONOCHROME2
+    imager_pixel_spacing_mm: tuple[float, float]  # (row spacing, column spacing) at the detector
+    primary_angle_deg: float | None = None  # PositionerPrimaryAngle (LAO +, RAO -)
+    secondary_angle_deg: float | None = None  # PositionerSecondaryAngle (CRA +, CAU -)
+    sid_mm: float | None = None  # DistanceSourceToDetector
+    sod_mm: float | None = None  # DistanceSourceToPatient (isocentre)
+    acquisition_datetime: datetime | None = None  # UTC-aware
+    patient_id: str = "ANON"
+    patient_name: str = "ANONYMOUS"
+    study_uid: str = field(default_factory=generate_uid)
+    series_uid: str = field(default_factory=generate_uid)
+    sop_instance_uid: str = field(default_factory=generate_uid)
+    sop_class_uid: str = XA_IMAGE_STORAGE
+    laterality: str | None = None  # "L" or "R"
+    modality: str = "XA"
+    bits_stored: int = 16
+    instance_number: int = 1
+
+    def __post_init__(self) -> None:
+        pixels = np.asarray(self.pixels)
+        if pixels.ndim != 2 or min(pixels.shape) < 2:
+            raise ValueError(f"frame pixels must be a 2-D image, got shape {pixels.shape}")
+        if pixels.dtype != np.uint16:
+            raise ValueError(f"frame pixels must be uint16, got {pixels.dtype}")
+        if not 8 <= self.bits_stored <= 16:
+            raise ValueError(f"bits stored {self.bits_stored} is outside 8-16")
+        if int(pixels.max(initial=0)) >= 1 << self.bits_stored:
+            raise ValueError(f"pixel values exceed {self.bits_stored} bits stored")
+        spacing = tuple(float(s) for s in self.imager_pixel_spacing_mm)
+        if len(spacing) != 2 or not all(0.0 < s < 10.0 for s in spacing):
+            raise ValueError(f"imager pixel spacing {self.imager_pixel_spacing_mm} mm is not plausible")
+        if self.laterality not in (None, "L", "R"):
+            raise ValueError(f"laterality must be 'L', 'R' or None, got {self.laterality!r}")
+        if self.acquisition_datetime is not None and self.acquisition_datetime.tzinfo is None:
+            raise ValueError("acquisition_datetime must be timezone-aware (UTC)")
+        self.pixels = pixels
+        self.imager_pixel_spacing_mm = spacing
+
+    @property
+    def height(self) -> int:
+        return int(self.pixels.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.pixels.shape[1])
+
+
+def _ds(value: float) -> str:
+    """A decimal string (VR DS, at most 16 characters)."""
+    return f"{value:.6g}"
+
+
+def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: str = "SIMCARM",
+                 kvp: float = 70.0, tube_current_ma: float = 5.0, exposure_time_ms: float = 200.0,
+                 study_id: str = "1", series_number: int = 1) -> Dataset:
+    """The frame as an XA (default) or RF Image Storage instance with its file meta.
+
+    Save it with ``ds.save_as(path, enforce_file_format=True)``.
+    """
+    if frame.sop_class_uid not in _ENCODABLE:
+        raise ValueError(f"cannot encode SOP class {frame.sop_class_uid}: use XA or RF Image Storage")
+    modality = _ENCODABLE[frame.sop_class_uid]
+    if frame.modality != modality:
+        raise ValueError(f"modality {frame.modality!r} does not match SOP class ({modality})")
+    when = (frame.acquisition_datetime or datetime.now(timezone.utc)).astimezone(timezone.utc)
+    date, time = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = frame.sop_class_uid
+    meta.MediaStorageSOPInstanceUID = frame.sop_instance_uid
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SpecificCharacterSet = "ISO_IR 100"
+    # SOP Common
+    ds.SOPClassUID, ds.SOPInstanceUID = frame.sop_class_uid, frame.sop_instance_uid
+    ds.InstanceCreationDate, ds.InstanceCreationTime = date, time
+    ds.TimezoneOffsetFromUTC = "+0000"
+    # Patient
+    ds.PatientName, ds.PatientID = frame.patient_name, frame.patient_id
+    ds.PatientBirthDate, ds.PatientSex = "", ""
+    # General Study
+    ds.StudyInstanceUID, ds.StudyID = frame.study_uid, study_id
+    ds.StudyDate, ds.StudyTime = date, time
+    ds.ReferringPhysicianName, ds.AccessionNumber = "", ""
+    # General Series
+    ds.Modality, ds.SeriesInstanceUID, ds.SeriesNumber = modality, frame.series_uid, series_number
+    ds.BodyPartExamined = "KNEE"
+    ds.Laterality = frame.laterality or ""
+    # General Equipment
+    ds.Manufacturer, ds.StationName = manufacturer, station_name
+    # General Image / Acquisition
+    ds.InstanceNumber = frame.instance_number
+    ds.PatientOrientation = ""
+    ds.ContentDate, ds.ContentTime = date, time
+    ds.AcquisitionDateTime = when.strftime("%Y%m%d%H%M%S.%f") + "+0000"
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "SINGLE PLANE"]
+    ds.LossyImageCompression = "00"
+    ds.PixelIntensityRelationship = "LIN"
+    # Image Pixel
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows, ds.Columns = frame.height, frame.width
+    ds.BitsAllocated, ds.BitsStored, ds.HighBit = 16, frame.bits_stored, frame.bits_stored - 1
+    ds.PixelRepresentation = 0
+    ds.PixelData = np.ascontiguousarray(frame.pixels, dtype="<u2").tobytes()
+    # X-Ray Acquisition and positioner
+    ds.KVP = _ds(kvp)
+    ds.RadiationSetting = "GR"
+    ds.XRayTubeCurrent = int(round(tube_current_ma))
+    ds.ExposureTime = int(round(exposure_time_ms))
+    ds.Exposure = int(round(tube_current_ma * exposure_time_ms / 1000.0))
+    ds.ImagerPixelSpacing = [_ds(s) for s in frame.imager_pixel_spacing_mm]
+    ds.FieldOfViewShape = "ROUND"
+    if frame.sid_mm is not None:
+        ds.DistanceSourceToDetector = _ds(frame.sid_mm)
+    if frame.sod_mm is not None:
+        ds.DistanceSourceToPatient = _ds(frame.sod_mm)
+    # Type 2 in the XA Positioner module: present, empty when unknown. (The RF IOD has no
+    # such attributes; they are kept there too, as C-arms do, making it Standard Extended.)
+    ds.PositionerPrimaryAngle = "" if frame.primary_angle_deg is None else _ds(frame.primary_angle_deg)
+    ds.PositionerSecondaryAngle = "" if frame.secondary_angle_deg is None else _ds(frame.secondary_angle_deg)
+    return ds
+
+
+def _required(ds: Dataset, keyword: str):
+    value = ds.get(keyword)
+    if value is None or value == "":
+        raise FrameError(f"{keyword} is missing")
+    return value
+
+
+def _optional_float(ds: Dataset, keyword: str, low: float, high: float) -> float | None:
+    try:
+        value = ds.get(keyword)
+        if value is None or value == "":
+            return None
+        number = float(value)
+    except (TypeError, ValueError):
+        raise FrameError(f"{keyword} is not a number") from None
+    if not (np.isfinite(number) and low <= number <= high):
+        raise FrameError(f"{keyword} {number} is outside the plausible range [{low}, {high}]")
+    return number
+
+
+def _utc_offset(text: str, keyword: str) -> timezone:
+    """A ``+HHMM``/``-HHMM`` offset from UTC."""
+    if len(text) != 5 or text[0] not in "+-" or not text[1:].isdigit():
+        raise FrameError(f"{keyword} offset {text!r} is not of the form +HHMM")
+    minutes = int(text[1:3]) * 60 + int(text[3:5])
+    return timezone((-1 if text[0] == "-" else 1) * timedelta(minutes=minutes))
+
+
+def _acquisition_datetime(ds: Dataset) -> datetime | None:
+    """AcquisitionDateTime, else AcquisitionDate/Time, else ContentDate/Time, in UTC."""
+    text = str(ds.get("AcquisitionDateTime", "") or "")
+    if not text:
+        for prefix in ("Acquisition", "Content"):
+            date, time = ds.get(f"{prefix}Date", ""), ds.get(f"{prefix}Time", "")
+            if date and time:
+                text = f"{date}{time}"
+                break
+    if not text:
+        return None
+    offset = _utc_offset(str(ds.get("TimezoneOffsetFromUTC", "") or "+0000"), "TimezoneOffsetFromUTC")
+    if len(text) > 5 and text[-5] in "+-":
+        offset, text = _utc_offset(text[-5:], "AcquisitionDateTime"), text[:-5]
+    fraction = 0
+    if "." in text:
+        text, frac = text.split(".", 1)
+        fraction = int((frac + "000000")[:6]) if frac.isdigit() else -1
+    try:
+        if fraction < 0 or len(text) < 8:
+            raise ValueError
+        padded = (text + "000000")[:14]
+        when = datetime.strptime(padded, "%Y%m%d%H%M%S").replace(microsecond=fraction, tzinfo=offset)
+    except ValueError:
+        raise FrameError(f"acquisition date-time {text!r} is not a valid DICOM date-time") from None
+    return when.astimezone(timezone.utc)
+
+
+def _pixel_spacing(ds: Dataset) -> tuple[float, float]:
+    for keyword in ("ImagerPixelSpacing", "PixelSpacing"):
+        value = ds.get(keyword)
+        if value:
+            try:
+                spacing = tuple(float(v) for v in value)
+            except (TypeError, ValueError):
+                raise FrameError(f"{keyword} {value!r} is not numeric") from None
+            if len(spacing) != 2 or not all(0.0 < s < 10.0 for s in spacing):
+                raise FrameError(f"{keyword} {list(spacing)} mm is not a plausible pixel spacing")
+            return spacing  # type: ignore[return-value]
+    raise FrameError("ImagerPixelSpacing is missing (and no PixelSpacing either)")
+
+
+def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
+    """The pixel matrix as MONOCHROME2 uint16 and its bits stored."""
+    if int(_required(ds, "SamplesPerPixel")) != 1:
+        raise FrameError(f"SamplesPerPixel {ds.SamplesPerPixel} is not 1 (not a grey-scale X-ray)")
+    photometric = str(_required(ds, "PhotometricInterpretation"))
+    if photometric not in ("MONOCHROME1", "MONOCHROME2"):
+        raise FrameError(f"PhotometricInterpretation {photometric} is not MONOCHROME1/2")
+    if int(ds.get("NumberOfFrames", 1) or 1) != 1:
+        raise FrameError(f"NumberOfFrames is {ds.NumberOfFrames}: send single-frame images")
+    if int(_required(ds, "PixelRepresentation")) != 0:
+        raise FrameError("PixelRepresentation is signed; X-ray frames must be unsigned")
+    bits_allocated = int(_required(ds, "BitsAllocated"))
+    bits_stored = int(_required(ds, "BitsStored"))
+    if bits_allocated not in (8, 16) or not 1 <= bits_stored <= bits_allocated:
+        raise FrameError(f"BitsAllocated {bits_allocated} / BitsStored {bits_stored} not supported")
+    rows, columns = int(_required(ds, "Rows")), int(_required(ds, "Columns"))
+    if "PixelData" not in ds:
+        raise FrameError("PixelData is missing")
+    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", ExplicitVRLittleEndian)
+    expected = rows * columns * bits_allocated // 8
+    if not syntax.is_compressed and len(ds.PixelData) not in (expected, expected + 1):
+        raise FrameError(f"PixelData holds {len(ds.PixelData)} bytes, Rows x Columns x "
+                         f"BitsAllocated need {expected}")
+    try:
+        array = ds.pixel_array
+    except Exception as exc:  # pydicom raises many types for bad or undecodable pixel data
+        raise FrameError(f"PixelData cannot be decoded (transfer syntax {syntax}): {exc}") from None
+    if array.shape != (rows, columns):
+        raise FrameError(f"PixelData has shape {array.shape}, Rows/Columns say {(rows, columns)}")
+    pixels = np.asarray(array, dtype=np.uint16) & np.uint16((1 << bits_stored) - 1)
+    if photometric == "MONOCHROME1":
+        pixels = np.uint16((1 << bits_stored) - 1) - pixels
+    return pixels, bits_stored
+
+
+def decode_frame(ds: Dataset) -> Frame:
+    """The :class:`Frame` of a received instance, or :class:`FrameError` saying what is wrong."""
+    sop_class = str(_required(ds, "SOPClassUID"))
+    if sop_class not in SOP_CLASSES:
+        raise FrameError(f"SOPClassUID {sop_class} is not an X-ray image class "
+                         "(XA, RF, DX or Secondary Capture)")
+    modality = str(_required(ds, "Modality"))
+    if modality not in SOP_CLASSES[sop_class]:
+        raise FrameError(f"Modality {modality} is not an X-ray modality for SOP class {sop_class}")
+    pixels, bits_stored = _pixels(ds)
+    laterality = str(ds.get("ImageLaterality", "") or ds.get("Laterality", "") or "") or None
+    if laterality in ("B", "U"):
+        laterality = None
+    if laterality not in (None, "L", "R"):
+        raise FrameError(f"Laterality {laterality!r} is not L or R")
+    return Frame(
+        pixels=pixels,
+        imager_pixel_spacing_mm=_pixel_spacing(ds),
+        primary_angle_deg=_optional_float(ds, "PositionerPrimaryAngle", -180.0, 180.0),
+        secondary_angle_deg=_optional_float(ds, "PositionerSecondaryAngle", -180.0, 180.0),
+        sid_mm=_optional_float(ds, "DistanceSourceToDetector", 100.0, 5000.0),
+        sod_mm=_optional_float(ds, "DistanceSourceToPatient", 50.0, 5000.0),
+        acquisition_datetime=_acquisition_datetime(ds),
+        patient_id=str(_required(ds, "PatientID")),
+        patient_name=str(ds.get("PatientName", "") or ""),
+        study_uid=str(_required(ds, "StudyInstanceUID")),
+        series_uid=str(_required(ds, "SeriesInstanceUID")),
+        sop_instance_uid=str(_required(ds, "SOPInstanceUID")),
+        sop_class_uid=sop_class,
+        laterality=laterality,
+        modality=modality,
+        bits_stored=max(8, bits_stored),
+        instance_number=int(ds.get("InstanceNumber", 1) or 1),
+    )

@@ -1,0 +1,412 @@
+"""The measurement pipeline of one case run, recorded stage by stage.
+
+frames -> calibration -> initial poses -> contours -> joint solve -> plane and angles ->
+results. The initial poses come before contour extraction because the projected planned
+pins label pin 1 and pin 2 consistently in every view. Every stage is logged to the run's
+rerun recording (:mod:`service.recording`); the results are a JSON document validated
+against the published schema, a Comprehensive 3D SR and one Secondary Capture per view.
+
+A run writes ``output/<case>/<run>/`` (every file crash-safely) and ``result.json`` last: a
+run whose ``result.json`` exists is complete and never repeated (idempotent by the SOP
+Instance UIDs it uses); one cut short by a crash is run again after the restart.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from pydicom.dataset import Dataset
+from pydicom.uid import generate_uid
+
+from solver.geometry import Pose
+from solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
+from solver.measurement import pin_axis_points
+from solver.observations import LABELS, ViewObservation
+from solver.plan import Plan
+from solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
+
+from .cases import Case, View, run_id_of
+from .dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
+from .dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from .frames import Frame, decode_frame, encode_frame
+from .plans import PlanStore
+from .poses import ViewGeometry, planned_pins
+from .recording import CaseRecorder
+from .results import build_result, validate_result
+from .sender import OutgoingObject
+from .spool import Spool, write_atomic, write_json_atomic
+
+__all__ = ["Pipeline", "RunOutcome", "plane_polygon", "PLANE_PATCH_HALF_MM"]
+
+log = logging.getLogger("slamtka.pipeline")
+PLANE_PATCH_HALF_MM = 30.0
+_PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
+_SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
+_SC_CLASS = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
+
+
+@dataclass
+class RunOutcome:
+    doc: dict
+    folder: Path
+    objects: list[OutgoingObject]
+
+
+@dataclass
+class _ViewInput:
+    view: View
+    view_id: str
+    frame: Frame
+    header: Dataset  # the instance without pixel data (SR evidence, SC reference)
+    contours_raw: dict[str, np.ndarray] | None = None
+    contour_source: str | None = None
+    used: bool = True
+
+
+def plane_polygon(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """A closed square (5, 3) in the plane, centred on ``point`` (tibia frame, mm)."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    corners = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1], [1, 1]], float) * PLANE_PATCH_HALF_MM
+    return point + corners[:, :1] * u + corners[:, 1:] * v
+
+
+class Pipeline:
+    """Runs cases; everything it needs is built once at service start."""
+
+    def __init__(self, spool: Spool, plans: PlanStore, calibration, geometry: ViewGeometry,
+                 output_root: Path, *, contour_config: ContourConfig = ContourConfig(),
+                 solver_config: SolverConfig = SolverConfig(),
+                 manual_contours_dir: Path | None = None, institution: str = ""):
+        self.spool, self.plans, self.calibration, self.geometry = spool, plans, calibration, geometry
+        self.output_root = Path(output_root)
+        self.contour_config, self.solver_config = contour_config, solver_config
+        self.manual_contours_dir, self.institution = manual_contours_dir, institution
+        self._extracted: OrderedDict[str, tuple[dict | None, str]] = OrderedDict()
+        self._pins: dict[int, tuple[Pose, Pose]] = {}
+
+    def warm_up(self) -> None:
+        """Build a throwaway report and image once, so that the first case does not pay for
+        loading and initialising the DICOM builders (about half a second)."""
+        source = encode_frame(Frame(np.zeros((8, 8), np.uint16), (0.2, 0.2), patient_id="WARMUP",
+                                    acquisition_datetime=datetime.now(timezone.utc)))
+        doc = {"status": "not_measured", "software": {"version": "warm-up"}, "inputs": None,
+               "case": {"laterality": None}}
+        build_sr(doc, [source], None, series_uid=generate_uid(prefix=None),
+                 sop_instance_uid=generate_uid(prefix=None))
+        build_sc(source, np.zeros((8, 8, 3), np.uint8), series_uid=generate_uid(prefix=None),
+                 sop_instance_uid=generate_uid(prefix=None), instance_number=1, orientation=None)
+
+    def run_folder(self, case: Case, views: list[View]) -> Path:
+        return self.output_root / case.case_id / run_id_of([v.sop_instance_uid for v in views])
+
+    def already_done(self, case: Case, views: list[View]) -> bool:
+        return (self.run_folder(case, views) / "result.json").is_file()
+
+    # -- stages ---------------------------------------------------------------------------
+    def _manual_contours(self) -> dict[str, dict[str, np.ndarray]]:
+        """Hand-drawn contours (raw pixels) by SOP Instance UID (the documents' view_id)."""
+        found: dict[str, dict[str, np.ndarray]] = {}
+        if self.manual_contours_dir is None or not self.manual_contours_dir.is_dir():
+            return found
+        for path in sorted(self.manual_contours_dir.glob("*.json")):
+            try:
+                coordinates, views = load_manual_contours(path)
+            except ContourError as exc:
+                log.error("ignoring manual contours: %s", exc)
+                continue
+            for uid, contours in views.items():
+                found[uid] = {label: (self.calibration.distort_points(points)
+                                      if coordinates == "undistorted" else points)
+                              for label, points in contours.as_dict().items()}
+        return found
+
+    def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
+                 pins: tuple[Pose, Pose]) -> tuple[dict[str, np.ndarray] | None, str]:
+        """Extracted contours of one view (raw pixels), or None and the reason; cached."""
+        uid = view.sop_instance_uid
+        if uid not in self._extracted:
+            try:
+                found = extract_contours(frame.pixels, self.contour_config,
+                                         self._expected_pins(plan, T_cam_tibia, pins))
+                self._extracted[uid] = (found.as_dict(), "extracted")
+            except ContourError as exc:
+                self._extracted[uid] = (None, f"contours could not be extracted ({exc})")
+            while len(self._extracted) > _PREPARED_VIEWS:
+                self._extracted.popitem(last=False)
+        return self._extracted[uid]
+
+    def prepare(self, case: Case, view: View) -> None:
+        """Extract a view's contours as soon as it arrives, so that a run triggered by a later
+        view only waits for that view's. Quietly does nothing when there is no plan yet."""
+        if not view.usable or view.sop_instance_uid in self._extracted:
+            return
+        try:
+            plan = self.plans.find(case.patient_id, case.laterality)
+        except ValueError:
+            return
+        T = self.geometry.initial_views(plan, [view.pairing], [view.positioner]).T_cam_tibia[0]
+        frame = decode_frame(self.spool.read(view.entry))
+        if self.calibration.check_frame(frame) is None:
+            self._extract(plan, view, frame, T, self._planned_pins(plan))
+
+    def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
+        key = id(plan)
+        if key not in self._pins:
+            self._pins = {key: planned_pins(plan)}
+        return self._pins[key]
+
+    def _expected_pins(self, plan: Plan, T_cam_tibia: Pose, pins: tuple[Pose, Pose]) -> np.ndarray:
+        """Raw pixel positions of the planned pins' centres in one view (pin labelling)."""
+        half = 0.5 * plan.pin_length()
+        centres = np.array([T.apply(np.array([0.0, 0.0, half])) for T in pins])
+        ideal = self.calibration.camera.project(T_cam_tibia.apply(centres))
+        return self.calibration.distort_points(ideal)
+
+    # -- the run --------------------------------------------------------------------------
+    def run(self, case: Case, views: list[View],
+            on_output: Callable[[OutgoingObject], None] = lambda obj: None) -> RunOutcome:
+        """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result as soon as it is
+        on disk (the report first), so sending does not wait for the rest of the run."""
+        started = time.perf_counter()
+        run_id = run_id_of([v.sop_instance_uid for v in views])
+        folder = self.run_folder(case, views)
+        folder.mkdir(parents=True, exist_ok=True)
+        recorder = CaseRecorder(folder / "recording.rrd", case.case_id, run_id)
+        try:
+            return self._run(case, views, run_id, folder, recorder, started, on_output)
+        finally:
+            recorder.close()
+
+    def _run(self, case: Case, views: list[View], run_id: str, folder: Path,
+             recorder: CaseRecorder, started: float,
+             on_output: Callable[[OutgoingObject], None]) -> RunOutcome:
+        timings: dict[str, float] = {}
+        reasons: list[str] = []
+        clock = [time.perf_counter()]
+
+        def lap(name: str) -> None:
+            now = time.perf_counter()
+            timings[f"{name}_s"] = now - clock[0]
+            clock[0] = now
+
+        items = self._frames(views, recorder, reasons)
+        lap("frames")
+        self._check_calibration(items, recorder, reasons)
+        lap("calibration")
+        plan, outcome, observations, initial = None, None, [], None
+        try:
+            plan = self.plans.find(case.patient_id, case.laterality)
+        except ValueError as exc:
+            reasons.insert(0, str(exc))
+        usable = [i for i in items if i.used]
+        if plan is not None and len(usable) < 2:
+            reasons.insert(0, f"only {len(usable)} usable view(s); at least two are needed")
+        elif plan is not None:
+            outcome, observations, initial = self._measure(plan, usable, recorder, reasons, lap)
+
+        recorder.stage("results")
+        used = {i.view_id for i in items if i.used and i.contours_raw is not None}
+        uids = {"sr": generate_uid(prefix=None),
+                **{i.view_id: generate_uid(prefix=None) for i in items}}
+        timings["total_s"] = time.perf_counter() - started
+        doc = build_result(
+            case_id=case.case_id, run_id=run_id,
+            case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
+                  "laterality": case.laterality},
+            sources=[self._source(i, i.view_id in used) for i in items],
+            outcome=outcome, plan=plan, views=observations,
+            calibration={"id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
+            initial=initial, reasons=reasons, timings=timings,
+            outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
+                     "sr_sop_instance_uid": uids["sr"],
+                     "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}})
+        objects = self._write_dicom(doc, items, plan, outcome, observations, uids, folder,
+                                    on_output)
+        lap("results")
+        timings["total_s"] = time.perf_counter() - started
+        validate_result(doc)
+        recorder.result(doc)
+        if doc["angles"] is not None:
+            recorder.angles(doc["angles"]["ctr_deg"], doc["angles"]["str_deg"])
+        write_json_atomic(folder / "result.json", doc)  # last: marks the run complete
+        return RunOutcome(doc, folder, objects)
+
+    def _frames(self, views: list[View], recorder: CaseRecorder,
+                reasons: list[str]) -> list[_ViewInput]:
+        recorder.stage("frames", f"{len(views)} views")
+        items = []
+        for k, view in enumerate(views, start=1):
+            ds = self.spool.read(view.entry)
+            frame = decode_frame(ds)
+            del ds.PixelData
+            item = _ViewInput(view, f"view{k}", frame, ds)
+            recorder.frame(item.view_id, frame, view.positioner)
+            recorder.encoder(item.view_id, view.pairing.initialisation, view.pairing.encoder_reading)
+            if view.pairing.angle_check and view.pairing.angle_check.get("status") == "disagrees":
+                reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")
+            items.append(item)
+        return items
+
+    def _check_calibration(self, items: list[_ViewInput], recorder: CaseRecorder,
+                           reasons: list[str]) -> None:
+        recorder.stage("calibration", self.calibration.calibration_id)
+        recorder.calibration(self.calibration.document())
+        for item in items:
+            problem = self.calibration.check_frame(item.frame)
+            if problem:
+                item.used = False
+                reasons.append(f"{item.view_id}: {problem}")
+
+    def _measure(self, plan: Plan, usable: list[_ViewInput], recorder: CaseRecorder,
+                 reasons: list[str], lap: Callable[[str], None],
+                 ) -> tuple[SolveOutcome | None, list[ViewObservation], InitialGuess]:
+        """Initial poses, contours and the joint solve of the usable views."""
+        recorder.plan(plan)
+        recorder.stage("initial_poses")
+        start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
+                                            [i.view.positioner for i in usable])
+        pins = self._planned_pins(plan)
+        recorder.initial([i.view_id for i in usable], start.T_cam_tibia, list(pins),
+                         [self.calibration.camera] * len(usable))
+        lap("initial_poses")
+
+        recorder.stage("contours")
+        manual = self._manual_contours()
+        for item, T in zip(usable, start.T_cam_tibia):
+            uid = item.view.sop_instance_uid
+            if uid in manual:
+                item.contours_raw, item.contour_source = manual[uid], "manual"
+            else:
+                item.contours_raw, item.contour_source = self._extract(plan, item.view,
+                                                                       item.frame, T, pins)
+            if item.contours_raw is None:
+                item.used = False
+                reasons.append(f"{item.view_id}: {item.contour_source}")
+                item.contour_source = None
+            else:
+                recorder.contours(item.view_id, item.contours_raw, item.contour_source)
+        kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
+        observations = [ViewObservation(i.view_id, self.calibration.camera, {
+            label: self.calibration.undistort_points(i.contours_raw[label]) for label in LABELS})
+            for i, _ in kept]
+        initial = InitialGuess(tuple(T for _, T in kept), pins, start.odometry_sigma)
+        recorder.solver_inputs(self._solver_inputs(plan, observations, initial))
+        lap("contours")
+        if len(observations) < 2:
+            reasons.insert(0, f"only {len(observations)} view(s) with contours; at least two "
+                              "are needed")
+            return None, observations, initial
+
+        recorder.stage("solve")
+        outcome = solve_joint(plan, observations, initial, self.solver_config,
+                              callback=recorder.iteration)
+        lap("solve")
+        recorder.stage("plane_and_angles", outcome.status)
+        polygon = (None if outcome.plane is None
+                   else plane_polygon(outcome.plane.point, outcome.plane.normal))
+        recorder.final([o.view_id for o in observations], outcome.T_cam_tibia,
+                       outcome.T_tibia_pin, plan.pin_mesh, polygon, outcome.residual_rms)
+        return outcome, observations, initial
+
+    def _solver_inputs(self, plan: Plan, observations: list[ViewObservation],
+                       initial: InitialGuess) -> dict:
+        """Exactly what the solver was given (float64 JSON), for ``slamtka replay --resolve``."""
+        from solver.sdf import mesh_digest
+
+        return {"camera": self.calibration.camera.to_json(),
+                "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
+                                                    for label in LABELS}} for o in observations],
+                "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],
+                            "T_tibia_pin": [T.to_json() for T in initial.T_tibia_pin],
+                            "odometry_sigma": initial.odometry_sigma},
+                "plan": {"patient_id": plan.patient_id, "landmarks": plan.landmarks.to_json(),
+                         "target": vars(plan.target),
+                         "pin": vars(plan.pin_spec) if plan.pin_spec is not None else None,
+                         "bone_mesh_sha256": mesh_digest(plan.bone_meshes()),
+                         "pin_mesh_sha256": mesh_digest([plan.pin_mesh])},
+                "solver_config": repr(self.solver_config)}
+
+    def _source(self, item: _ViewInput, used: bool) -> dict:
+        v, f = item.view, item.frame
+        return {"view_id": item.view_id, "sop_instance_uid": v.sop_instance_uid,
+                "sop_class_uid": v.sop_class_uid, "series_instance_uid": v.series_uid,
+                "acquisition_datetime": (None if f.acquisition_datetime is None
+                                         else f.acquisition_datetime.isoformat()),
+                "positioner": v.positioner, "initialisation": v.pairing.initialisation,
+                "encoder_reading": v.pairing.encoder_reading, "angle_check": v.pairing.angle_check,
+                "contours": item.contour_source, "used": used}
+
+    # -- DICOM results --------------------------------------------------------------------
+    def _write_dicom(self, doc: dict, items: list[_ViewInput], plan: Plan | None,
+                     outcome: SolveOutcome | None, observations: list[ViewObservation],
+                     uids: dict, folder: Path,
+                     on_output: Callable[[OutgoingObject], None]) -> list[OutgoingObject]:
+        measured = doc["status"] == "measured"
+        geometry = None
+        posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
+        if measured:
+            pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
+            axis = plan.landmarks.T_tibia_anat().R[:, 2]
+            angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
+                      for T in outcome.T_tibia_pin]
+            geometry = SrGeometry(
+                tibia_frame_of_reference_uid(doc["inputs"]["plan"]["bone_mesh_sha256"]),
+                plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
+                plan.side)
+        series_sr, series_sc = generate_uid(prefix=None), generate_uid(prefix=None)
+        sr = build_sr(doc, [i.header for i in items], geometry, series_uid=series_sr,
+                      sop_instance_uid=uids["sr"], institution=self.institution)
+        objects = [self._save(sr, folder / "sr.dcm", "sr", _SR_CLASS)]
+        on_output(objects[0])
+        text = self._summary_lines(doc)
+        for n, item in enumerate(items, start=1):
+            overlay = ScOverlay(item.contours_raw or {}, text=text,
+                                within_tolerance=(doc["deviation"] or {}).get("within_tolerance"))
+            T = posed.get(item.view_id)
+            orientation = None
+            if T is not None and plan is not None:
+                if measured:
+                    overlay.plane_px = self._project(T, plane_polygon(outcome.plane.point,
+                                                                      outcome.plane.normal))
+                overlay.pin_axes_px = [self._project(T, pin_axis_points(P, plan.pin_length())[[0, -1]])
+                                       for P in outcome.T_tibia_pin]
+                R_anat_cam = plan.landmarks.T_tibia_anat().inverse().R @ T.inverse().R
+                orientation = patient_orientation(R_anat_cam)
+            rgb = render_overlay(item.frame.pixels, overlay)
+            sc = build_sc(item.header, rgb, series_uid=series_sc,
+                          sop_instance_uid=uids[item.view_id], instance_number=n,
+                          orientation=orientation, institution=self.institution)
+            objects.append(self._save(sc, folder / f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
+            on_output(objects[-1])
+        return objects
+
+    def _project(self, T_cam_tibia: Pose, points_tibia: np.ndarray) -> np.ndarray:
+        ideal = self.calibration.camera.project(T_cam_tibia.apply(points_tibia))
+        return self.calibration.distort_points(ideal)
+
+    @staticmethod
+    def _summary_lines(doc: dict) -> list[str]:
+        if doc["status"] != "measured":
+            return ["NOT MEASURED", doc["reason"][:90]]
+        a, t, d = doc["angles"], doc["target"], doc["deviation"]
+        return [f"CTR {a['ctr_deg']:+.1f} deg (+-{a['ctr_sigma_deg']:.1f})  plan {t['ctr_deg']:+.1f}",
+                f"STR {a['str_deg']:+.1f} deg (+-{a['str_sigma_deg']:.1f})  plan {t['str_deg']:+.1f}",
+                f"{'WITHIN' if d['within_tolerance'] else 'OUTSIDE'} +-{t['tolerance_deg']:.0f} deg"]
+
+    @staticmethod
+    def _save(ds: Dataset, path: Path, kind: str, sop_class: str) -> OutgoingObject:
+        buffer = io.BytesIO()
+        ds.save_as(buffer, enforce_file_format=True)
+        write_atomic(path, buffer.getvalue())
+        return OutgoingObject(path, kind, sop_class, str(ds.SOPInstanceUID))

@@ -1,0 +1,183 @@
+"""The rerun recording of one pipeline run: every stage in its own entity path.
+
+One ``.rrd`` file per run, written through rerun's file sink (never a viewer process).
+Entity paths (the 3D scene is the tibia frame, ``world``):
+
+- ``pipeline/stages`` — a text log line per stage, on the ``stage`` timeline
+- ``calibration`` — the calibration document (JSON)
+- ``views/<view>/image`` — each received frame, on the ``acquisition_time`` timeline
+- ``views/<view>/positioner``, ``views/<view>/encoder`` — DICOM geometry and the paired
+  encoder reading
+- ``views/<view>/contours/<label>`` — extracted (or manual) contours over the image
+- ``plan/<mesh>``, ``plan/landmarks`` — the plan's meshes and landmarks
+- ``world/initial/<view>``, ``world/initial/<pin>`` — initial poses (as T_tibia_x)
+- ``solver/cost``, ``solver/terms/<term>``, ``solver/lambda``, ``world/solver/<pose>`` —
+  every solver iteration, on the ``solver_iteration`` timeline (``solver/stage`` names it)
+- ``world/final/<pose>``, ``world/final/<pin>/mesh``, ``world/final/plane`` — the result
+- ``result/ctr_deg``, ``result/str_deg`` and ``result/document`` — angles and the JSON result
+- ``inputs/solver`` — the exact solver inputs (JSON, float64) from which ``slamtka replay
+  --resolve`` re-runs the solve
+
+Everything a viewer shows comes with an exact JSON twin where reproduction needs it, because
+rerun stores geometry as float32.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import trimesh
+
+from solver.geometry import Pose
+from solver.optimizer import IterationInfo
+from solver.plan import Plan
+
+from .frames import Frame
+
+__all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
+
+APPLICATION_ID = "slamtka"
+STAGES = ("frames", "calibration", "contours", "initial_poses", "solve", "plane_and_angles",
+          "results")
+_JSON_MEDIA = "application/json"
+_LABEL_COLOURS = {"bone": (255, 220, 0), "pin1": (0, 230, 255), "pin2": (255, 60, 255)}
+
+
+def _transform(T: Pose) -> rr.Transform3D:
+    return rr.Transform3D(translation=T.t.astype(np.float32), mat3x3=T.R.astype(np.float32))
+
+
+def _mesh(mesh: trimesh.Trimesh, colour: tuple[int, int, int]) -> rr.Mesh3D:
+    return rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices, np.float32),
+                     triangle_indices=np.asarray(mesh.faces, np.uint32),
+                     vertex_normals=np.asarray(mesh.vertex_normals, np.float32),
+                     albedo_factor=colour)
+
+
+class CaseRecorder:
+    """Writes one run's recording; call the stage methods in pipeline order, then close."""
+
+    def __init__(self, path: Path, case_id: str, run_id: str):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"{case_id}-{run_id}")
+        self.rec.save(self.path)
+        self.rec.send_recording_name(f"{case_id} run {run_id}")
+        self._stage = -1
+        self._iteration = 0
+        self._view_ids: list[str] = []
+
+    # -- timelines ------------------------------------------------------------------------
+    def stage(self, name: str, detail: str = "") -> None:
+        if name not in STAGES:
+            raise ValueError(f"unknown pipeline stage {name!r}")
+        self._stage += 1
+        self.rec.reset_time()
+        self.rec.set_time("stage", sequence=self._stage)
+        self.rec.log("pipeline/stages", rr.TextLog(f"{name}: {detail}" if detail else name,
+                                                   level=rr.TextLogLevel.INFO))
+
+    def _json(self, path: str, doc: dict) -> None:
+        self.rec.log(path, rr.TextDocument(json.dumps(doc, default=str),
+                                           media_type=_JSON_MEDIA), static=True)
+
+    # -- inputs ---------------------------------------------------------------------------
+    def frame(self, view_id: str, frame: Frame, positioner: dict) -> None:
+        self._view_ids.append(view_id)
+        if frame.acquisition_datetime is not None:
+            self.rec.set_time("acquisition_time", timestamp=frame.acquisition_datetime)
+        self.rec.log(f"views/{view_id}/image", rr.Image(frame.pixels))
+        self.rec.log(f"views/{view_id}/positioner",
+                     rr.AnyValues(**{k: (np.nan if v is None else v) for k, v in positioner.items()},
+                                  sop_instance_uid=frame.sop_instance_uid))
+
+    def encoder(self, view_id: str, source: str, reading: dict | None) -> None:
+        self.rec.log(f"views/{view_id}/encoder",
+                     rr.TextDocument(json.dumps({"initialisation": source, "reading": reading}),
+                                     media_type=_JSON_MEDIA))
+
+    def calibration(self, doc: dict) -> None:
+        self._json("calibration", doc)
+
+    def contours(self, view_id: str, contours_px: dict[str, np.ndarray], source: str) -> None:
+        for label, points in contours_px.items():
+            self.rec.log(f"views/{view_id}/contours/{label}",
+                         rr.Points2D(np.asarray(points, np.float32).reshape(-1, 2), radii=1.0,
+                                     colors=_LABEL_COLOURS.get(label, (255, 255, 255))))
+        self.rec.log(f"views/{view_id}/contours", rr.TextLog(f"{source} contours: " + ", ".join(
+            f"{label} {len(p)} px" for label, p in contours_px.items())))
+
+    def plan(self, plan: Plan) -> None:
+        for name, mesh, colour in (("tibia", plan.tibia, (230, 220, 200)),
+                                   ("fibula", plan.fibula, (200, 190, 170)),
+                                   ("pin", plan.pin_mesh, (180, 180, 200))):
+            if mesh is not None:
+                self.rec.log(f"plan/{name}", _mesh(mesh, colour), static=True)
+        lm = plan.landmarks
+        self.rec.log("plan/landmarks", rr.Points3D(
+            np.array([lm.knee_centre, lm.ankle_centre]), labels=["knee centre", "ankle centre"],
+            radii=3.0), static=True)
+        self._json("plan/document", {"patient_id": plan.patient_id, "side": plan.side,
+                                     "landmarks": lm.to_json(), "target": vars(plan.target)})
+
+    def initial(self, view_ids: list[str], T_cam_tibia: list[Pose], T_tibia_pin: list[Pose],
+                cameras: list) -> None:
+        for view_id, T, camera in zip(view_ids, T_cam_tibia, cameras):
+            self.rec.log(f"world/initial/{view_id}", _transform(T.inverse()))
+            self.rec.log(f"world/initial/{view_id}", rr.Pinhole(
+                focal_length=[camera.fx, camera.fy], principal_point=[camera.cx, camera.cy],
+                resolution=[camera.width, camera.height], image_plane_distance=100.0))
+        for k, T in enumerate(T_tibia_pin, start=1):
+            self.rec.log(f"world/initial/pin{k}", _transform(T))
+
+    def solver_inputs(self, doc: dict) -> None:
+        self._json("inputs/solver", doc)
+
+    # -- the solve ------------------------------------------------------------------------
+    def iteration(self, stage: str, info: IterationInfo) -> None:
+        """The solver callback: costs and every pose after each step."""
+        self._iteration += 1
+        self.rec.set_time("solver_iteration", sequence=self._iteration)
+        self.rec.log("solver/stage", rr.TextLog(f"{stage}: iteration {info.iteration}, "
+                                                f"{'accepted' if info.accepted else 'rejected'}"))
+        self.rec.log("solver/cost", rr.Scalars(info.cost))
+        self.rec.log("solver/lambda", rr.Scalars(info.lambda_))
+        for term, cost in info.term_costs.items():
+            self.rec.log(f"solver/terms/{term}", rr.Scalars(cost))
+        poses = info.state.poses
+        n_views = len(poses) - 2
+        for view_id, T in zip(self._view_ids, poses[:n_views]):
+            self.rec.log(f"world/solver/{view_id}", _transform(T.inverse()))
+        for k, T in enumerate(poses[n_views:], start=1):
+            self.rec.log(f"world/solver/pin{k}", _transform(T))
+
+    # -- the result -----------------------------------------------------------------------
+    def final(self, view_ids: list[str], T_cam_tibia: list[Pose], T_tibia_pin: list[Pose],
+              pin_mesh: trimesh.Trimesh, plane_polygon: np.ndarray | None,
+              residual_rms: dict[str, float]) -> None:
+        for view_id, T in zip(view_ids, T_cam_tibia):
+            self.rec.log(f"world/final/{view_id}", _transform(T.inverse()))
+        for k, T in enumerate(T_tibia_pin, start=1):
+            self.rec.log(f"world/final/pin{k}", _transform(T))
+            self.rec.log(f"world/final/pin{k}/mesh", _mesh(pin_mesh, _LABEL_COLOURS[f"pin{k}"]))
+        if plane_polygon is not None:
+            quad = np.asarray(plane_polygon[:4], np.float32)
+            self.rec.log("world/final/plane", rr.Mesh3D(
+                vertex_positions=quad, triangle_indices=np.array([[0, 1, 2], [0, 2, 3]], np.uint32),
+                albedo_factor=(60, 230, 60, 120)))
+        for term, rms in residual_rms.items():
+            self.rec.log(f"result/residual_rms/{term}", rr.Scalars(rms))
+
+    def angles(self, ctr_deg: float, str_deg: float) -> None:
+        self.rec.log("result/ctr_deg", rr.Scalars(ctr_deg))
+        self.rec.log("result/str_deg", rr.Scalars(str_deg))
+
+    def result(self, doc: dict) -> None:
+        self._json("result/document", doc)
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()

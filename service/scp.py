@@ -1,0 +1,216 @@
+"""The DICOM receiver (SCP): Verification and X-ray image storage, thin handlers.
+
+Associations are accepted only from the configured calling AE titles and only when they
+call our AE title; TLS (1.2 or newer, client certificates required) is optional. The C-STORE
+handler only validates, persists and queues: it checks the instance (SOP class against the
+negotiated context, UIDs, transfer syntax, image attributes and pixel data length through
+:func:`service.frames.decode_frame`), writes it to the spool (fsynced) and appends an audit
+line before the success status goes back; a refused instance gets a failure status with the
+reason in the Error Comment and an audit line. The pipeline runs elsewhere.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+from pathlib import Path
+from typing import Callable
+
+from pydicom.dataset import Dataset
+from pydicom.uid import UID, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+from pynetdicom import AE, evt
+from pynetdicom.sop_class import (
+    DigitalXRayImageStorageForPresentation,
+    DigitalXRayImageStorageForProcessing,
+    EnhancedXAImageStorage,
+    SecondaryCaptureImageStorage,
+    Verification,
+    XRayAngiographicImageStorage,
+    XRayRadiofluoroscopicImageStorage,
+)
+
+from .audit import AuditLog
+from .config import ConfigError, DicomConfig, TlsConfig
+from .frames import FrameError, decode_frame
+from .spool import Spool, SpoolEntry
+
+__all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_instance",
+           "server_ssl_context", "client_ssl_context"]
+
+log = logging.getLogger("slamtka.scp")
+
+STORAGE_SOP_CLASSES = (XRayAngiographicImageStorage, EnhancedXAImageStorage,
+                       XRayRadiofluoroscopicImageStorage, DigitalXRayImageStorageForPresentation,
+                       DigitalXRayImageStorageForProcessing, SecondaryCaptureImageStorage)
+# Uncompressed only: what every C-arm can send and what we can check byte for byte.
+TRANSFER_SYNTAXES = (ExplicitVRLittleEndian, ImplicitVRLittleEndian)
+
+STATUS_SUCCESS = 0x0000
+STATUS_NOT_AUTHORIZED = 0x0124
+STATUS_OUT_OF_RESOURCES = 0xA700
+STATUS_NOT_SOP_CLASS = 0xA900
+STATUS_CANNOT_UNDERSTAND = 0xC000
+_TLS_VERSIONS = {"1.2": ssl.TLSVersion.TLSv1_2, "1.3": ssl.TLSVersion.TLSv1_3}
+
+
+def _load_tls(ctx: ssl.SSLContext, certificate: Path | None, private_key: Path | None,
+              ca_certificates: Path | None, where: str) -> ssl.SSLContext:
+    try:
+        if certificate is not None:
+            ctx.load_cert_chain(certificate, private_key)
+        if ca_certificates is not None:
+            ctx.load_verify_locations(cafile=ca_certificates)
+    except (OSError, ssl.SSLError) as exc:
+        raise ConfigError(f"{where}: cannot load certificates ({exc})") from None
+    return ctx
+
+
+def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
+    """Mutual TLS for the SCP: our certificate, client certificates required."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = _TLS_VERSIONS[tls.min_version]
+    ctx.verify_mode = ssl.CERT_REQUIRED
+    return _load_tls(ctx, tls.certificate, tls.private_key, tls.ca_certificates, "dicom.tls")
+
+
+def client_ssl_context(ca_certificates: Path, certificate: Path | None = None,
+                       private_key: Path | None = None, where: str = "tls") -> ssl.SSLContext:
+    """TLS for an SCU: verify the server against ``ca_certificates``, present ours if given."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    ctx.check_hostname = False  # DICOM nodes are identified by certificate chain and AE title
+    ctx.verify_mode = ssl.CERT_REQUIRED
+    return _load_tls(ctx, certificate, private_key, ca_certificates, where)
+
+
+def check_instance(ds: Dataset, context_sop_class: str, transfer_syntax: str,
+                   affected_sop_instance_uid: str) -> tuple[int, str] | None:
+    """(failure status, reason) if the instance must be refused, else None."""
+    if transfer_syntax not in TRANSFER_SYNTAXES:
+        return STATUS_CANNOT_UNDERSTAND, f"transfer syntax {transfer_syntax} is not accepted"
+    sop_class = str(ds.get("SOPClassUID", "") or "")
+    if sop_class != context_sop_class:
+        return STATUS_NOT_SOP_CLASS, (f"SOPClassUID {sop_class or '(missing)'} does not match "
+                                      f"the negotiated {context_sop_class}")
+    for keyword in ("SOPInstanceUID", "StudyInstanceUID", "SeriesInstanceUID"):
+        value = str(ds.get(keyword, "") or "")
+        if not value:
+            return STATUS_CANNOT_UNDERSTAND, f"{keyword} is missing"
+        if not UID(value).is_valid:
+            return STATUS_CANNOT_UNDERSTAND, f"{keyword} is not a valid UID"
+    if str(ds.SOPInstanceUID) != str(affected_sop_instance_uid):
+        return STATUS_CANNOT_UNDERSTAND, "SOPInstanceUID differs from the C-STORE request"
+    try:
+        decode_frame(ds)
+    except FrameError as exc:
+        return STATUS_CANNOT_UNDERSTAND, str(exc)
+    return None
+
+
+def _status(code: int, comment: str = "") -> Dataset:
+    status = Dataset()
+    status.Status = code
+    if comment:
+        status.ErrorComment = comment[:64]
+    return status
+
+
+class DicomReceiver:
+    """The SCP of the service; ``on_stored`` is called with each newly spooled instance."""
+
+    def __init__(self, config: DicomConfig, spool: Spool, audit: AuditLog,
+                 on_stored: Callable[[SpoolEntry], None]):
+        self.config, self.spool, self.audit, self.on_stored = config, spool, audit, on_stored
+        self._ssl = server_ssl_context(config.tls) if config.tls.enabled else None
+        self._server = None
+        ae = AE(ae_title=config.ae_title)
+        ae.require_called_aet = True
+        ae.require_calling_aet = [*config.allowed_calling_ae_titles, config.health_ae_title]
+        ae.maximum_pdu_size = config.max_pdu_bytes
+        ae.maximum_associations = config.max_associations
+        ae.network_timeout = config.idle_timeout_s
+        ae.acse_timeout = config.idle_timeout_s
+        ae.dimse_timeout = config.dimse_timeout_s
+        ae.add_supported_context(Verification)
+        for sop_class in STORAGE_SOP_CLASSES:
+            ae.add_supported_context(sop_class, list(TRANSFER_SYNTAXES))
+        self.ae = ae
+
+    def start(self) -> None:
+        handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
+                    (evt.EVT_REJECTED, self._on_rejected)]
+        self._server = self.ae.start_server((self.config.bind_address, self.config.port),
+                                            block=False, evt_handlers=handlers,
+                                            ssl_context=self._ssl)
+        log.info("DICOM SCP %s listening on %s:%d%s", self.config.ae_title,
+                 self.config.bind_address, self.port, " (TLS)" if self._ssl else "")
+
+    @property
+    def port(self) -> int:
+        """The bound port (the configured one, or the free port picked for port 0)."""
+        return int(self._server.server_address[1]) if self._server else self.config.port
+
+    def stop(self) -> None:
+        if self._server is not None:
+            self._server.shutdown()
+            self._server = None
+
+    # -- handlers (run on pynetdicom's association threads) --------------------------------
+    @staticmethod
+    def _peer(event) -> dict:
+        requestor = event.assoc.requestor
+        return {"calling_ae": str(requestor.ae_title).strip(), "peer": requestor.address}
+
+    def _on_echo(self, event) -> int:
+        return STATUS_SUCCESS
+
+    def _on_rejected(self, event) -> None:
+        peer = self._peer(event)
+        request = event.assoc.requestor.primitive
+        called = str(request.called_ae_title if request is not None else "").strip()
+        if peer["calling_ae"] not in (*self.config.allowed_calling_ae_titles,
+                                      self.config.health_ae_title):
+            reason = "calling AE title not allowed"
+        elif called and called != self.config.ae_title:
+            reason = f"called AE title {called!r} is not ours"
+        else:
+            reason = "too many associations"
+        self.audit.record("association_rejected", reason=reason, **peer)
+
+    def _on_store(self, event) -> Dataset:
+        peer = self._peer(event)
+        context = event.context
+        request_uid = str(event.request.AffectedSOPInstanceUID)
+        if peer["calling_ae"] == self.config.health_ae_title:
+            return self._refuse(peer, request_uid, STATUS_NOT_AUTHORIZED,
+                                "the health-check AE title may not store")
+        try:
+            ds = event.dataset
+            ds.file_meta = event.file_meta
+        except Exception as exc:  # pydicom raises many types on a malformed byte stream
+            return self._refuse(peer, request_uid, STATUS_CANNOT_UNDERSTAND,
+                                f"dataset cannot be decoded: {exc}")
+        refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,
+                                 request_uid)
+        if refusal is not None:
+            return self._refuse(peer, request_uid, *refusal)
+        try:
+            entry, created = self.spool.store(ds)
+        except OSError as exc:
+            log.error("cannot spool %s: %s", request_uid, exc)
+            return self._refuse(peer, request_uid, STATUS_OUT_OF_RESOURCES,
+                                f"cannot write the spool: {exc.strerror}")
+        fields = {"sop_instance_uid": entry.sop_instance_uid, "sop_class_uid": str(ds.SOPClassUID),
+                  "study_uid": str(ds.StudyInstanceUID), "spool_id": entry.id, **peer}
+        if not created:
+            self.audit.record("duplicate", **fields)
+            return _status(STATUS_SUCCESS)
+        self.audit.record("received", **fields)
+        self.on_stored(entry)
+        return _status(STATUS_SUCCESS)
+
+    def _refuse(self, peer: dict, uid: str, code: int, reason: str) -> Dataset:
+        log.warning("refused instance %s from %s: %s", uid, peer["calling_ae"], reason)
+        self.audit.record("rejected", sop_instance_uid=uid, status=f"0x{code:04X}", reason=reason,
+                          **peer)
+        return _status(code, reason)

@@ -1,0 +1,202 @@
+"""Sending the results: C-STORE to each configured destination through a durable retry queue.
+
+Every (object, destination) pair is a job file in ``queue/pending/`` written crash-safely
+before anything is sent, so a restart resumes where it stopped. A worker thread sends the
+due jobs, one association per destination per round; a failure is retried with exponential
+backoff (``retry_initial_s`` doubling up to ``retry_max_s``) and after ``max_attempts`` the
+job moves to ``queue/failed/``. Every success, failure and abandonment is in the audit log.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import uuid
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import pydicom
+from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
+from pynetdicom import AE
+
+from .audit import AuditLog
+from .config import Destination, SenderConfig
+from .scp import client_ssl_context
+from .spool import write_json_atomic
+
+__all__ = ["Sender", "SendJob", "OutgoingObject"]
+
+log = logging.getLogger("slamtka.sender")
+_SUCCESS_OR_WARNING = {0x0000, 0x0107, 0x0116, 0xB000, 0xB006, 0xB007}
+
+
+@dataclass(frozen=True)
+class OutgoingObject:
+    """One DICOM result object on disk: ``kind`` is ``sr`` or ``sc``."""
+
+    path: Path
+    kind: str
+    sop_class_uid: str
+    sop_instance_uid: str
+
+
+@dataclass
+class SendJob:
+    id: str
+    destination: str
+    path: str
+    kind: str
+    sop_class_uid: str
+    sop_instance_uid: str
+    case_id: str
+    run_id: str
+    created: float
+    attempts: int = 0
+    next_attempt: float = 0.0
+    last_error: str = ""
+
+
+class Sender:
+    def __init__(self, ae_title: str, destinations: list[Destination], config: SenderConfig,
+                 queue_dir: Path, audit: AuditLog):
+        self.ae_title, self.config, self.audit = ae_title, config, audit
+        self.destinations = {d.name: d for d in destinations}
+        self.pending_dir = Path(queue_dir) / "pending"
+        self.failed_dir = Path(queue_dir) / "failed"
+        self.pending_dir.mkdir(parents=True, exist_ok=True)
+        self.failed_dir.mkdir(parents=True, exist_ok=True)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.on_sent = None  # optional callback(job) for metrics
+
+    # -- queue ------------------------------------------------------------------------------
+    def enqueue(self, objects: list[OutgoingObject], case_id: str, run_id: str) -> list[SendJob]:
+        jobs = []
+        now = time.time()
+        for dest in self.destinations.values():
+            for obj in objects:
+                if obj.kind not in dest.objects:
+                    continue
+                job = SendJob(uuid.uuid4().hex, dest.name, str(obj.path), obj.kind,
+                              obj.sop_class_uid, obj.sop_instance_uid, case_id, run_id, now)
+                write_json_atomic(self.pending_dir / f"{job.id}.json", asdict(job))
+                jobs.append(job)
+        self._wake.set()
+        return jobs
+
+    def _jobs(self, folder: Path) -> list[SendJob]:
+        jobs = []
+        for path in sorted(folder.glob("*.json")):
+            jobs.append(SendJob(**json.loads(path.read_text())))
+        return sorted(jobs, key=lambda j: (j.created, j.id))
+
+    def pending(self) -> list[SendJob]:
+        return self._jobs(self.pending_dir)
+
+    def failed(self) -> list[SendJob]:
+        return self._jobs(self.failed_dir)
+
+    # -- sending ----------------------------------------------------------------------------
+    def _association(self, dest: Destination, sop_classes: set[str]):
+        ae = AE(ae_title=self.ae_title)
+        for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
+            setattr(ae, timeout, self.config.timeout_s)
+        for sop_class in sorted(sop_classes):
+            ae.add_requested_context(sop_class, [ExplicitVRLittleEndian, ImplicitVRLittleEndian])
+        tls = None
+        if dest.tls:
+            tls = (client_ssl_context(dest.ca_certificates, dest.certificate, dest.private_key,
+                                      f"destination {dest.name}"), None)
+        return ae.associate(dest.host, dest.port, ae_title=dest.ae_title, tls_args=tls)
+
+    def _send_to(self, dest: Destination, jobs: list[SendJob]) -> dict[str, str]:
+        """Errors by job id ('' = sent) for one association to ``dest``."""
+        errors = {}
+        try:
+            assoc = self._association(dest, {j.sop_class_uid for j in jobs})
+        except Exception as exc:  # socket/TLS setup errors of every kind end up here
+            return {j.id: f"cannot connect: {exc}" for j in jobs}
+        if not assoc.is_established:
+            why = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "failed"
+            return {j.id: f"association {why}" for j in jobs}
+        try:
+            for job in jobs:
+                try:
+                    ds = pydicom.dcmread(job.path)
+                except (OSError, pydicom.errors.InvalidDicomError) as exc:
+                    errors[job.id] = f"cannot read {job.path}: {exc}"
+                    continue
+                status = assoc.send_c_store(ds)
+                code = getattr(status, "Status", None)
+                errors[job.id] = "" if code in _SUCCESS_OR_WARNING else (
+                    "no response" if code is None else f"status 0x{code:04X}")
+        finally:
+            if assoc.is_established:
+                assoc.release()
+        return errors
+
+    def run_once(self, now: float | None = None) -> int:
+        """Send every due job; returns how many were sent."""
+        now = time.time() if now is None else now
+        due = [j for j in self.pending() if j.next_attempt <= now]
+        sent = 0
+        for name in sorted({j.destination for j in due}):
+            jobs = [j for j in due if j.destination == name]
+            dest = self.destinations.get(name)
+            errors = (self._send_to(dest, jobs) if dest is not None
+                      else {j.id: f"destination {name!r} is no longer configured" for j in jobs})
+            for job in jobs:
+                sent += self._settle(job, errors.get(job.id, "not attempted"), now)
+        return sent
+
+    def _settle(self, job: SendJob, error: str, now: float) -> int:
+        path = self.pending_dir / f"{job.id}.json"
+        fields = {"destination": job.destination, "sop_instance_uid": job.sop_instance_uid,
+                  "kind": job.kind, "case_id": job.case_id, "run_id": job.run_id}
+        if not error:
+            self.audit.record("sent", attempts=job.attempts + 1, **fields)
+            path.unlink(missing_ok=True)
+            if self.on_sent is not None:
+                self.on_sent(job)
+            return 1
+        job.attempts += 1
+        job.last_error = error
+        if job.attempts >= self.config.max_attempts:
+            write_json_atomic(self.failed_dir / f"{job.id}.json", asdict(job))
+            path.unlink(missing_ok=True)
+            self.audit.record("send_abandoned", attempts=job.attempts, error=error, **fields)
+            log.error("giving up sending %s to %s: %s", job.kind, job.destination, error)
+            return 0
+        delay = min(self.config.retry_initial_s * 2 ** (job.attempts - 1), self.config.retry_max_s)
+        job.next_attempt = now + delay
+        write_json_atomic(path, asdict(job))
+        self.audit.record("send_failed", attempts=job.attempts, error=error,
+                          retry_in_s=round(delay, 3), **fields)
+        log.warning("sending %s to %s failed (%s); retry in %.1f s", job.kind, job.destination,
+                    error, delay)
+        return 0
+
+    # -- worker thread ----------------------------------------------------------------------
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            try:
+                self.run_once()
+            except Exception:  # keep the worker alive; the job files stay for the next round
+                log.exception("sender round failed")
+            upcoming = [j.next_attempt for j in self.pending()]
+            wait = min([max(t - time.time(), 0.0) for t in upcoming] + [5.0])
+            self._wake.wait(max(wait, 0.01))
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._loop, name="slamtka-sender", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.config.timeout_s + 5)

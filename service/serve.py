@@ -1,0 +1,238 @@
+"""``slamtka serve --config FILE``: the long-running service.
+
+Threads: pynetdicom's association threads receive, validate, spool and queue instances
+(:mod:`service.scp`); one worker assembles cases and runs the pipeline (so the network side
+never waits for the solver); the sender delivers results (:mod:`service.sender`); the
+encoder link reads the C-arm (``drivers``); the status board keeps ``status.json`` fresh.
+
+Start-up checks everything before the DICOM port opens: the configuration, the calibration
+(checksum), the plans folder, the link configuration. Then the spool is replayed into cases,
+so a restart loses nothing acknowledged, and a case whose current views were not yet
+measured is measured now. Under systemd (``Type=notify``) readiness is signalled once the
+port is open. SIGTERM/SIGINT stop it cleanly: the port closes first, the running case
+finishes, the queues stay on disk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import queue
+import signal
+import socket
+import threading
+from datetime import datetime, timezone
+from pathlib import Path
+
+from drivers.encoder_link import EncoderLink, LinkConfig
+from drivers.kinematics import CArmKinematics
+
+from .audit import AuditLog
+from .cases import Case, CaseAssembler, run_id_of
+from .config import ServiceConfig, load_config
+from .pipeline import Pipeline
+from .plans import PlanStore
+from .poses import ViewGeometry
+from .scp import DicomReceiver
+from .sender import Sender
+from .spool import Spool, SpoolEntry
+from .status import Metrics, StatusBoard
+
+__all__ = ["Service", "add_serve_parser"]
+
+log = logging.getLogger("slamtka.serve")
+
+
+def _sd_notify(message: str) -> None:
+    """Tell systemd (Type=notify) about our state; a no-op outside systemd."""
+    address = os.environ.get("NOTIFY_SOCKET")
+    if not address:
+        return
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.sendto(message.encode(), address)
+
+
+class Service:
+    def __init__(self, config: ServiceConfig):
+        self.config = config
+        for folder in (config.data_dir, config.output, config.plans):
+            folder.mkdir(parents=True, exist_ok=True)
+        self.metrics = Metrics()
+        self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe])
+        self.spool = Spool(config.spool_dir)
+        from solver.imaging.calibration import load_calibration
+
+        self.calibration = load_calibration(config.carm.calibration)
+        kinematics = CArmKinematics.from_config(config.carm.kinematics)
+        self.link = None
+        if config.carm.encoder_port:
+            self.link = EncoderLink(config.carm.encoder_port, LinkConfig.from_config(config.carm.link))
+        geometry = ViewGeometry(kinematics, config.carm.setup, self.link,
+                                config.carm.max_reading_age_s, config.carm.angle_check_deg)
+        self.plans = PlanStore(config.plans)
+        self.pipeline = Pipeline(self.spool, self.plans, self.calibration, geometry, config.output,
+                                 manual_contours_dir=config.pipeline.manual_contours_dir,
+                                 institution=config.institution)
+        self.assembler = CaseAssembler(self.spool, geometry, config.pipeline.min_view_separation_deg,
+                                       config.pipeline.max_views)
+        self.sender = Sender(config.dicom.ae_title, config.destinations, config.sender,
+                             config.queue_dir, self.audit)
+        self._incoming: queue.Queue[SpoolEntry | None] = queue.Queue()
+        self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put)
+        self._worker: threading.Thread | None = None
+        self._state = "starting"
+        self._started = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        self._last_result: dict | None = None
+        self.status = StatusBoard(config.status_file, {
+            "state": lambda: self._state, "started": lambda: self._started,
+            "dicom": self._dicom_status, "spool": lambda: {"instances": self.spool.count(),
+                                                           "bytes": self.spool.bytes_used()},
+            "cases": lambda: [c.describe() for c in list(self.assembler.cases.values())],
+            "last_result": lambda: self._last_result, "link": self._link_status,
+            "queue": lambda: {"pending": len(self.sender.pending()),
+                              "failed": len(self.sender.failed())},
+            "metrics": self.metrics.snapshot, "calibration": lambda: {
+                "id": self.calibration.calibration_id, "sha256": self.calibration.sha256}})
+
+    # -- status sections ------------------------------------------------------------------
+    def _dicom_status(self) -> dict:
+        d = self.config.dicom
+        return {"ae_title": d.ae_title, "address": d.bind_address, "port": self.receiver.port,
+                "tls": d.tls.enabled}
+
+    def _link_status(self) -> dict | None:
+        if self.link is None:
+            return None
+        state = self.link.state
+        return {"status": state.status, "reason": state.reason,
+                "since": state.since_utc.isoformat(timespec="seconds"),
+                "port": self.config.carm.encoder_port}
+
+    # -- life cycle -----------------------------------------------------------------------
+    def start(self) -> None:
+        if self.link is not None:
+            self.link.start()
+        self.pipeline.warm_up()
+        due = self._recover()
+        self.sender.start()
+        self.receiver.start()
+        self._worker = threading.Thread(target=self._work, args=(due,), name="slamtka-worker",
+                                        daemon=True)
+        self._worker.start()
+        self._state = "running"
+        self.status.start()
+        self.audit.record("service_started", ae_title=self.config.dicom.ae_title,
+                          port=self.receiver.port, recovered_instances=self.spool.count(),
+                          config=str(self.config.source))
+        _sd_notify("READY=1")
+
+    def stop(self) -> None:
+        _sd_notify("STOPPING=1")
+        self._state = "stopping"
+        self.receiver.stop()
+        self._incoming.put(None)
+        if self._worker is not None:
+            self._worker.join()
+        self.sender.stop()
+        if self.link is not None:
+            self.link.stop()
+        self._state = "stopped"
+        self.audit.record("service_stopped")
+        self.status.stop(final=self.status.write())
+        self.audit.close()
+
+    def _recover(self) -> list[Case]:
+        """Rebuild cases from the spool; the cases whose current views were not measured."""
+        for entry in self.spool.entries():
+            self.assembler.add(entry)
+        return [c for c in self.assembler.cases.values()
+                if self.assembler.is_due(c)
+                and not self.pipeline.already_done(c, c.selection(self.config.pipeline.max_views))]
+
+    # -- the worker -----------------------------------------------------------------------
+    def _work(self, due: list[Case]) -> None:
+        pending = {c.case_id: c for c in due}
+        while True:
+            if not pending:
+                item = self._incoming.get()
+                if item is None:
+                    return
+                batch = [item]
+            else:
+                batch = []
+            # Take everything already waiting, so views that arrive together run once.
+            while True:
+                try:
+                    batch.append(self._incoming.get_nowait())
+                except queue.Empty:
+                    break
+            for entry in batch:
+                if entry is None:
+                    return
+                case, is_due = self.assembler.add(entry)
+                if case is not None:
+                    self._prepare(case, case.views[entry.sop_instance_uid])
+                if is_due:
+                    pending[case.case_id] = case
+            if pending:
+                _, case = pending.popitem()
+                self._process(case)
+            self.status.write()
+
+    def _prepare(self, case: Case, view) -> None:
+        try:
+            self.pipeline.prepare(case, view)
+        except Exception:  # the run will meet (and audit) the same problem
+            log.exception("preparing view %s of case %s failed", view.entry.id, case.case_id)
+
+    def _process(self, case: Case) -> None:
+        views = case.selection(self.config.pipeline.max_views)
+        if self.pipeline.already_done(case, views):
+            return
+        run_id = run_id_of([v.sop_instance_uid for v in views])
+        self.audit.record("case_triggered", case_id=case.case_id, run_id=run_id,
+                          sop_instance_uids=[v.sop_instance_uid for v in views],
+                          separation_deg=round(case.separation_deg(views), 2))
+        try:
+            outcome = self.pipeline.run(case, views, on_output=lambda obj: self.sender.enqueue(
+                [obj], case.case_id, run_id))
+        except Exception as exc:  # one bad case must not stop the service; it is audited
+            log.exception("case %s run %s failed", case.case_id, run_id)
+            self.audit.record("failed", case_id=case.case_id, run_id=run_id,
+                              error=f"{type(exc).__name__}: {exc}")
+            return
+        doc = outcome.doc
+        angles = doc["angles"] or {}
+        self.audit.record("processed", case_id=case.case_id, run_id=run_id, status=doc["status"],
+                          verdict=doc["verdict"], reason=doc["reason"],
+                          ctr_deg=angles.get("ctr_deg"), str_deg=angles.get("str_deg"),
+                          seconds=doc["timings"]["total_s"], folder=str(outcome.folder))
+        self._last_result = {"case_id": case.case_id, "run_id": run_id, "time": doc["created"],
+                             "status": doc["status"], "verdict": doc["verdict"],
+                             "reason": doc["reason"], "ctr_deg": angles.get("ctr_deg"),
+                             "str_deg": angles.get("str_deg"), "folder": str(outcome.folder)}
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    logging.getLogger("pynetdicom").setLevel(logging.WARNING)  # not a line per association
+    service = Service(config)
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    service.start()
+    print(f"slamtka serving DICOM as {config.dicom.ae_title} on {config.dicom.bind_address}:"
+          f"{service.receiver.port}; data in {config.data_dir}", flush=True)
+    while not stop.wait(1.0):
+        pass
+    service.stop()
+    return 0
+
+
+def add_serve_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run the service (DICOM SCP, pipeline, results)")
+    p.add_argument("--config", type=Path, required=True, help="service configuration (TOML)")
+    p.set_defaults(func=cmd_serve)

@@ -1,0 +1,132 @@
+"""The durable spool of received instances.
+
+An instance is written to a temporary file under a random name, fsynced, then hard-linked
+into ``instances/`` under a name derived from the SHA-256 of its SOP Instance UID (never from
+the untrusted value itself), and the directory is fsynced: only then is the C-STORE
+acknowledged. Linking refuses to replace an existing file, so a re-sent instance is detected
+atomically and the first copy is kept (processing is idempotent by SOP Instance UID).
+
+Beside each instance the case assembler keeps a small JSON sidecar (how the frame was
+paired with the C-arm's encoders), written the same crash-safe way, so a restart re-builds
+every case exactly as it was.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import pydicom
+from pydicom.dataset import Dataset
+
+__all__ = ["Spool", "SpoolEntry", "entry_id", "write_atomic", "write_json_atomic"]
+
+
+def entry_id(sop_instance_uid: str) -> str:
+    """File stem for an instance: a digest, so no received value ever becomes a path."""
+    return hashlib.sha256(sop_instance_uid.encode("ascii", "replace")).hexdigest()[:40]
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, data: bytes, replace: bool = True) -> bool:
+    """Write ``data`` to ``path`` via a fsynced temporary file in the same folder.
+
+    With ``replace=False`` an existing ``path`` is kept and False is returned.
+    """
+    path = Path(path)
+    tmp = path.parent / f".tmp-{uuid.uuid4().hex}"
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    try:
+        if replace:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                return False
+            finally:
+                os.unlink(tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+    return True
+
+
+def write_json_atomic(path: Path, doc: dict) -> None:
+    write_atomic(path, (json.dumps(doc, indent=2, default=str) + "\n").encode())
+
+
+@dataclass(frozen=True)
+class SpoolEntry:
+    """One spooled instance: its file and the SOP Instance UID it was stored under."""
+
+    id: str
+    path: Path
+    sop_instance_uid: str
+
+    @property
+    def sidecar(self) -> Path:
+        return self.path.with_suffix(".json")
+
+
+class Spool:
+    def __init__(self, root: Path):
+        self.root = Path(root)
+        self.instances = self.root / "instances"
+        self.instances.mkdir(parents=True, exist_ok=True)
+
+    def store(self, ds: Dataset) -> tuple[SpoolEntry, bool]:
+        """Persist ``ds`` (with its file meta); False in the tuple if it was already spooled."""
+        uid = str(ds.SOPInstanceUID)
+        buffer = io.BytesIO()
+        ds.save_as(buffer, enforce_file_format=True)
+        entry = self.entry(uid)
+        created = write_atomic(entry.path, buffer.getvalue(), replace=False)
+        return entry, created
+
+    def entry(self, sop_instance_uid: str) -> SpoolEntry:
+        stem = entry_id(sop_instance_uid)
+        return SpoolEntry(stem, self.instances / f"{stem}.dcm", sop_instance_uid)
+
+    def read(self, entry: SpoolEntry, pixels: bool = True) -> Dataset:
+        return pydicom.dcmread(entry.path, stop_before_pixels=not pixels)
+
+    def entries(self) -> list[SpoolEntry]:
+        """Every spooled instance in the order it was received (file modification time)."""
+        files = sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
+        out = []
+        for path in files:
+            uid = str(pydicom.dcmread(path, stop_before_pixels=True,
+                                      specific_tags=["SOPInstanceUID"]).SOPInstanceUID)
+            out.append(SpoolEntry(path.stem, path, uid))
+        return out
+
+    def write_sidecar(self, entry: SpoolEntry, doc: dict) -> None:
+        write_json_atomic(entry.sidecar, doc)
+
+    def read_sidecar(self, entry: SpoolEntry) -> dict | None:
+        if not entry.sidecar.is_file():
+            return None
+        return json.loads(entry.sidecar.read_text())
+
+    def count(self) -> int:
+        return sum(1 for _ in self.instances.glob("*.dcm"))
+
+    def bytes_used(self) -> int:
+        return sum(p.stat().st_size for p in self.instances.glob("*"))

@@ -1,0 +1,223 @@
+"""Health and metrics: the status snapshot the service keeps, ``slamtka status``, C-ECHO.
+
+The running service rewrites ``status.json`` in its data folder (atomically) on every event
+and every few seconds: spool, cases, the last result, the encoder link, the send queue and
+counters. ``slamtka status --config FILE`` prints it (``--json`` as is, ``--metrics`` in
+the Prometheus text format), and ``--echo`` checks the DICOM side end to end with a C-ECHO
+under the health-check AE title (allowed to associate, never to store). Exit status: 0 when
+the service is up (and answered the echo), 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import threading
+from collections import Counter
+from datetime import datetime, timezone
+from pathlib import Path
+
+from pynetdicom import AE
+from pynetdicom.sop_class import Verification
+
+from .config import ServiceConfig, load_config
+from .scp import client_ssl_context
+from .spool import write_json_atomic
+
+__all__ = ["Metrics", "StatusBoard", "echo", "prometheus_text", "add_status_parser"]
+
+STALE_AFTER_S = 30.0  # a snapshot older than this means the service is not running
+_COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
+            "duplicate": "instances_duplicate", "association_rejected": "associations_rejected",
+            "case_triggered": "runs_started", "failed": "runs_failed", "sent": "objects_sent",
+            "send_failed": "send_failures", "send_abandoned": "sends_abandoned"}
+
+
+class Metrics:
+    """Counters fed by the audit log (one source of truth) and pipeline timings."""
+
+    def __init__(self) -> None:
+        self.counters: Counter[str] = Counter({name: 0 for name in _COUNTED.values()})
+        self.counters.update({"runs_measured": 0, "runs_not_measured": 0})
+        self.run_seconds: list[float] = []
+        self._lock = threading.Lock()
+
+    def observe(self, entry: dict) -> None:
+        """Audit-log listener."""
+        with self._lock:
+            name = _COUNTED.get(entry["event"])
+            if name:
+                self.counters[name] += 1
+            if entry["event"] == "processed":
+                self.counters["runs_measured" if entry.get("status") == "measured"
+                              else "runs_not_measured"] += 1
+                self.run_seconds.append(float(entry.get("seconds", 0.0)))
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            recent = sorted(self.run_seconds[-100:])
+            return {**self.counters,
+                    "run_seconds_median": recent[len(recent) // 2] if recent else None,
+                    "run_seconds_last": self.run_seconds[-1] if self.run_seconds else None}
+
+
+class StatusBoard:
+    """Builds and writes the status snapshot; ``sources`` are callables returning sections."""
+
+    def __init__(self, path: Path, sources: dict, interval_s: float = 5.0):
+        self.path, self.sources, self.interval_s = Path(path), sources, interval_s
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def write(self) -> dict:
+        with self._lock:
+            doc = {"updated": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+                   "pid": os.getpid(), **{name: source() for name, source in self.sources.items()}}
+            write_json_atomic(self.path, doc)
+            return doc
+
+    def start(self) -> None:
+        def loop() -> None:
+            while not self._stop.wait(self.interval_s):
+                self.write()
+
+        self.write()
+        self._thread = threading.Thread(target=loop, name="slamtka-status", daemon=True)
+        self._thread.start()
+
+    def stop(self, final: dict | None = None) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.interval_s + 1)
+        if final is not None:
+            with self._lock:
+                write_json_atomic(self.path, final)
+
+
+def prometheus_text(status: dict) -> str:
+    """Counters and gauges of a status snapshot in the Prometheus text exposition format."""
+    lines = []
+    up = 1 if status.get("state") == "running" else 0
+    lines += ["# HELP slamtka_up 1 when the service is running", "# TYPE slamtka_up gauge",
+              f"slamtka_up {up}"]
+    for name, value in sorted((status.get("metrics") or {}).items()):
+        if value is None:
+            continue
+        kind = "gauge" if name.startswith("run_seconds") else "counter"
+        metric = f"slamtka_{name}" + ("_total" if kind == "counter" else "")
+        lines += [f"# TYPE {metric} {kind}", f"{metric} {value}"]
+    gauges = {"spool_instances": (status.get("spool") or {}).get("instances"),
+              "send_queue_pending": (status.get("queue") or {}).get("pending"),
+              "send_queue_failed": (status.get("queue") or {}).get("failed"),
+              "cases": len(status.get("cases") or [])}
+    for name, value in gauges.items():
+        if value is not None:
+            lines += [f"# TYPE slamtka_{name} gauge", f"slamtka_{name} {value}"]
+    link = (status.get("link") or {}).get("status")
+    if link:
+        lines += ["# TYPE slamtka_encoder_link_connected gauge",
+                  f"slamtka_encoder_link_connected {1 if link == 'connected' else 0}"]
+    return "\n".join(lines) + "\n"
+
+
+def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0) -> tuple[bool, str]:
+    """C-ECHO to the service under the health-check AE title: (answered, message)."""
+    ae = AE(ae_title=config.dicom.health_ae_title)
+    ae.add_requested_context(Verification)
+    for name in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
+        setattr(ae, name, timeout_s)
+    tls = None
+    if config.dicom.tls.enabled:
+        t = config.dicom.tls
+        tls = (client_ssl_context(t.ca_certificates, t.certificate, t.private_key, "dicom.tls"), None)
+    address = host or ("127.0.0.1" if config.dicom.bind_address in ("0.0.0.0", "::")
+                       else config.dicom.bind_address)
+    try:
+        assoc = ae.associate(address, config.dicom.port, ae_title=config.dicom.ae_title,
+                             tls_args=tls)
+    except Exception as exc:  # connection and TLS errors of every kind
+        return False, f"cannot connect to {address}:{config.dicom.port}: {exc}"
+    if not assoc.is_established:
+        return False, f"association with {config.dicom.ae_title}@{address}:{config.dicom.port} refused"
+    try:
+        status = assoc.send_c_echo()
+    finally:
+        assoc.release()
+    if getattr(status, "Status", None) != 0x0000:
+        return False, "C-ECHO failed"
+    return True, f"C-ECHO {config.dicom.ae_title}@{address}:{config.dicom.port}: success"
+
+
+def _age_s(status: dict) -> float:
+    updated = datetime.fromisoformat(status["updated"])
+    return (datetime.now(timezone.utc) - updated).total_seconds()
+
+
+def _describe(status: dict) -> str:
+    age = _age_s(status)
+    state = status.get("state", "unknown")
+    if state == "running" and age > STALE_AFTER_S:
+        state = f"not responding (last update {age:.0f} s ago)"
+    d = status.get("dicom", {})
+    lines = [f"slamtka service: {state} (pid {status.get('pid')}, since {status.get('started')})",
+             f"  DICOM: {d.get('ae_title')} on {d.get('address')}:{d.get('port')}"
+             f"{' with TLS' if d.get('tls') else ''}"]
+    spool, queue = status.get("spool", {}), status.get("queue", {})
+    lines.append(f"  spool: {spool.get('instances')} instance(s), "
+                 f"{(spool.get('bytes') or 0) / 1e6:.1f} MB; send queue: {queue.get('pending')} "
+                 f"pending, {queue.get('failed')} failed")
+    link = status.get("link") or {}
+    lines.append(f"  encoder link: {link.get('status', 'not configured')}"
+                 + (f" ({link.get('reason')})" if link.get("reason") else ""))
+    cases = status.get("cases") or []
+    lines.append(f"  cases: {len(cases)}")
+    for c in cases[-5:]:
+        lines.append(f"    {c['case_id']}  patient {c['patient_id']}  {c['laterality'] or '-'}  "
+                     f"{c['usable_views']}/{c['views']} usable view(s)")
+    last = status.get("last_result")
+    if last:
+        angles = (f"CTR {last['ctr_deg']:+.2f}, STR {last['str_deg']:+.2f} deg, {last['verdict']}"
+                  if last.get("ctr_deg") is not None else f"not measured: {last.get('reason')}")
+        lines.append(f"  last result: {last['case_id']} at {last['time']}: {angles}")
+        lines.append(f"    {last['folder']}")
+    m = status.get("metrics") or {}
+    lines.append(f"  counters: {m.get('instances_received', 0)} received, "
+                 f"{m.get('instances_rejected', 0)} rejected, {m.get('runs_measured', 0)} measured, "
+                 f"{m.get('runs_not_measured', 0)} not measured, {m.get('runs_failed', 0)} failed, "
+                 f"{m.get('objects_sent', 0)} sent")
+    return "\n".join(lines)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    ok = True
+    if config.status_file.is_file():
+        status = json.loads(config.status_file.read_text())
+        ok = status.get("state") == "running" and _age_s(status) <= STALE_AFTER_S
+        if args.json:
+            print(json.dumps(status, indent=2))
+        elif args.metrics:
+            print(prometheus_text(status), end="")
+        else:
+            print(_describe(status))
+    else:
+        ok = False
+        print(f"no status at {config.status_file}: the service has not run with this configuration")
+    if args.echo:
+        answered, message = echo(config)
+        print(message)
+        ok = answered
+    return 0 if ok else 1
+
+
+def add_status_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("status", help="service health: spool, cases, last result, link, metrics")
+    p.add_argument("--config", type=Path, required=True)
+    form = p.add_mutually_exclusive_group()
+    form.add_argument("--json", action="store_true", help="the raw status snapshot")
+    form.add_argument("--metrics", action="store_true", help="Prometheus text format")
+    p.add_argument("--echo", action="store_true",
+                   help="also C-ECHO the service (exit 1 if it does not answer)")
+    p.set_defaults(func=cmd_status)

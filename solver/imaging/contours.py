@@ -1,0 +1,532 @@
+"""Automatic contour extraction: outer edges of tibia with fibula, and the edges of each pin.
+
+Pipeline (all tuning in :class:`ContourConfig`, loadable from TOML or JSON):
+
+1. Field of view and polarity. The circle of an image intensifier is found from the
+   no-signal level in the frame's corners (a robust circle fit to the field's boundary);
+   the polarity (attenuating objects dark or bright) follows from which side is brighter.
+2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
+   bone a step on top of it, metal a much larger one.
+3. Pins: ``A`` minus a 100-px median background above ``pin_threshold`` (hysteresis); the
+   union of the pins' shadows is split into two bars by fitting two line segments
+   (alternating assignment and refit), since the two parallel pins usually overlap.
+4. Bone: ``A`` minus a soft-tissue background (a low-order polynomial fitted by asymmetric
+   least squares, so that it hugs the tissue under the bone) above ``bone_threshold``; the
+   boundary of that mask, with its holes, is the coarse outer outline of tibia with fibula.
+5. Sub-pixel edges: along each boundary point's outward normal, the position where ``A``
+   falls fastest (smoothed derivative, parabolic peak) within ``edge_search_px``, kept when
+   strong enough and away from the field's rim, the skin line and the pins' shadows.
+
+Pin labels (rule): the two pins are ordered along their common axis direction, oriented
+towards +u (image right): with ``pin_order = "left_to_right"`` pin 1 is the pin whose shadow
+centre comes first. Mobile C-arm views of a knee look from behind within +-90 deg of AP with
+the knee up, so the pin nearer the patient's -x (anatomical frame) comes first in every view;
+a C-arm that mirrors its images uses ``"right_to_left"``. When an initial pose is known,
+``expected_pins`` (the projected centres of pin 1 and pin 2) overrides the rule.
+
+Manual contours (the in-vivo protocol had the surgeon draw them) are read by
+:func:`load_manual_contours`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
+           "ContourError"]
+
+_CONTOURS_FORMAT = "slamtka-contours/1"
+
+
+class ContourError(ValueError):
+    """A frame or contour document from which contours cannot be had, with the reason."""
+
+
+@dataclass(frozen=True)
+class ContourConfig:
+    """Site tuning of contour extraction (attenuation in natural-log units, lengths in px)."""
+
+    polarity: str = "auto"  # "auto", "dark" (bone and metal dark) or "bright"
+    fov_margin_px: float = 8.0  # edges this close to the field's rim are dropped
+    smoothing_px: float = 1.2  # Gaussian sigma of the derivative used to place edges
+    background_downscale: int = 8  # the soft-tissue surface is fitted this much smaller
+    background_degree: int = 2  # polynomial degree of the soft-tissue surface
+    air_margin: float = 0.35  # attenuation above the darkest field pixels still counted as air
+    skin_margin_px: float = 40.0  # tissue this close to air seeds the soft-tissue region
+    barrier_strength: float = 0.012  # attenuation change per px that soft tissue never has
+    bone_threshold: float = 0.12  # attenuation over soft tissue above which a region is bone
+    min_bone_area_px: int = 3000
+    edge_search_px: float = 6.0  # half-length of the search for the edge along the normal
+    min_edge_strength: float = 0.015  # attenuation drop per pixel at an accepted edge
+    bone_edge_offset_px: float = 0.0  # outward shift of bone edges (blur bias of a site)
+    pin_threshold: float = 0.8  # attenuation of steel over its 100-px median background
+    pin_min_area_px: int = 80
+    pin_edge_offset_px: float = 0.0
+    pin_exclusion_px: float = 5.0  # bone edges this close to a pin shadow are dropped
+    pin_order: str = "left_to_right"  # or "right_to_left" for mirrored images
+
+    def __post_init__(self) -> None:
+        if self.polarity not in ("auto", "dark", "bright"):
+            raise ValueError(f"polarity must be auto, dark or bright, got {self.polarity!r}")
+        if self.pin_order not in ("left_to_right", "right_to_left"):
+            raise ValueError(f"pin_order must be left_to_right or right_to_left, got {self.pin_order!r}")
+        if self.background_downscale < 1 or self.background_degree < 1:
+            raise ValueError("background_downscale and background_degree must be >= 1")
+        positive = ("smoothing_px", "edge_search_px", "barrier_strength", "bone_threshold",
+                    "pin_threshold", "min_edge_strength")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+
+    @staticmethod
+    def load(path: str | Path) -> ContourConfig:
+        """Read a ``.toml`` or ``.json`` file (a ``[contours]`` table or top-level keys)."""
+        path = Path(path)
+        try:
+            text = path.read_text()
+            doc = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: cannot read contour configuration ({exc})") from None
+        doc = doc.get("contours", doc)
+        known = {f.name: f.type for f in fields(ContourConfig)}
+        unknown = sorted(set(doc) - set(known))
+        if unknown:
+            raise ValueError(f"{path}: unknown contour settings {unknown}")
+        return ContourConfig(**doc)
+
+
+@dataclass
+class ExtractedContours:
+    """Contour pixels (N, 2) in raw (distorted) image coordinates, and how they were found."""
+
+    bone: np.ndarray
+    pin1: np.ndarray
+    pin2: np.ndarray
+    diagnostics: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
+
+
+# -- field of view and attenuation ------------------------------------------------------------
+
+def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """Circle through most of the points (RANSAC over triplets), refined by least squares.
+
+    Objects crossing the rim of the field (a pin sticking out) dent its boundary, so the
+    consensus circle, not a plain fit, is the field.
+    """
+    triplets = points[rng.integers(0, len(points), (300, 3))]
+    a, b, c = triplets[:, 0], triplets[:, 1], triplets[:, 2]
+    d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
+    ok = np.abs(d) > 1e-6
+    a, b, c, d = a[ok], b[ok], c[ok], d[ok]
+    sa, sb, sc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
+    centres = np.column_stack([
+        (sa * (b[:, 1] - c[:, 1]) + sb * (c[:, 1] - a[:, 1]) + sc * (a[:, 1] - b[:, 1])) / d,
+        (sa * (c[:, 0] - b[:, 0]) + sb * (a[:, 0] - c[:, 0]) + sc * (b[:, 0] - a[:, 0])) / d])
+    radii = np.linalg.norm(a - centres, axis=1)
+    # Score candidates on a subsample of the boundary to keep this vectorised and small.
+    sample = points[:: max(1, len(points) // 400)]
+    residual = np.abs(np.linalg.norm(sample[None] - centres[:, None], axis=2) - radii[:, None])
+    best = int(np.argmax((residual < 1.5).sum(axis=1)))
+    keep = np.abs(np.linalg.norm(points - centres[best], axis=1) - radii[best]) < 1.5
+    p = points[keep]
+    M = np.column_stack([2 * p, np.ones(len(p))])
+    sol = np.linalg.lstsq(M, (p**2).sum(axis=1), rcond=None)[0]
+    return sol[:2], float(np.sqrt(sol[2] + sol[:2] @ sol[:2]))
+
+
+def _field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float | None, float, int]:
+    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal."""
+    h, w = image.shape
+    c = max(4, min(h, w) // 64)
+    corners = np.concatenate([image[:c, :c].ravel(), image[:c, -c:].ravel(),
+                              image[-c:, :c].ravel(), image[-c:, -c:].ravel()])
+    outside = float(np.median(corners))
+    inside = float(np.median(image[h // 4: 3 * h // 4, w // 4: 3 * w // 4]))
+    sign = {"dark": 1, "bright": -1}.get(polarity, 1 if inside >= outside else -1)
+    if abs(inside - outside) < 8.0 * (np.std(corners) + 1.0):
+        # Corners carry signal: a flat-panel or cropped frame without a circular field.
+        level = float(np.min(image)) if sign > 0 else float(np.max(image))
+        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), None, level, sign
+    lit = (sign * (image.astype(np.float32) - outside) > 0.5 * abs(inside - outside)).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
+    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    region = ndimage.binary_fill_holes(labels == largest).astype(np.uint8)
+    boundary = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
+    points = np.vstack([b.reshape(-1, 2) for b in boundary]).astype(float)
+    # Drop the frame's border: the field may be cut by the frame.
+    points = points[(points[:, 0] > 1) & (points[:, 1] > 1) & (points[:, 0] < w - 2) & (points[:, 1] < h - 2)]
+    if len(points) < 50:
+        raise ContourError("the circular field of view could not be found")
+    centre, radius = _fit_circle(points, np.random.default_rng(0))
+    return centre, radius, outside, sign
+
+
+def _attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
+    signal = sign * (image.astype(np.float32) - outside)
+    return -np.log(np.maximum(signal, 1.0))
+
+
+# -- sub-pixel edges along normals ----------------------------------------------------------
+
+def _outline_with_normals(mask: np.ndarray, min_length: int) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary pixels of a mask (outer boundaries and holes) and their outward unit normals."""
+    found = cv2.findContours(mask.astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)[0]
+    points, normals = [], []
+    for contour in found:
+        p = contour.reshape(-1, 2).astype(float)
+        if len(p) < min_length:
+            continue
+        k = 3
+        tangent = np.roll(p, -k, axis=0) - np.roll(p, k, axis=0)
+        norm = np.linalg.norm(tangent, axis=1, keepdims=True)
+        n = np.column_stack([tangent[:, 1], -tangent[:, 0]]) / np.maximum(norm, 1e-9)
+        points.append(p)
+        normals.append(n)
+    if not points:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    p, n = np.vstack(points), np.vstack(normals)
+    # Orient normals away from the mask.
+    probe = np.round(p + 2.5 * n).astype(int)
+    h, w = mask.shape
+    probe = np.clip(probe, 0, [w - 1, h - 1])
+    flip = mask[probe[:, 1], probe[:, 0]] > 0
+    n[flip] *= -1
+    return p, n
+
+
+# A silhouette's path length grows like sqrt(depth) inside the outline; blurred by a
+# Gaussian of sigma, the steepest fall of that profile sits _SQRT_PEAK sigma inside the true
+# outline and the sharpest bend (its onset) _SQRT_ONSET sigma outside it.
+_SQRT_PEAK, _SQRT_ONSET = 0.765, 0.551
+
+
+def _edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray,
+                         normals: np.ndarray, search: float, min_strength: float,
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Along each outward normal, where the image falls fastest within ``search`` px.
+
+    Returns the sub-pixel edge positions, their normals, the fall per pixel there, and the
+    distance from the steepest fall out to the sharpest bend of the profile (NaN when not
+    measurable), which measures the blur of the imaging chain.
+    """
+    empty = np.zeros((0, 2))
+    if len(points) == 0:
+        return empty, empty, np.zeros(0), np.zeros(0)
+    step = 0.25
+    s = np.arange(-search, search + step / 2, step)
+    samples = points[:, None, :] + s[None, :, None] * normals[:, None, :]
+    coords = [samples[..., 1].ravel(), samples[..., 0].ravel()]
+    gx = ndimage.map_coordinates(grad[0], coords, order=1, mode="nearest").reshape(samples.shape[:2])
+    gy = ndimage.map_coordinates(grad[1], coords, order=1, mode="nearest").reshape(samples.shape[:2])
+    drop = -(gx * normals[:, 0:1] + gy * normals[:, 1:2])  # positive where the image falls outwards
+    peak = np.argmax(drop, axis=1)
+    best = np.clip(peak, 1, len(s) - 2)
+    rows = np.arange(len(points))
+    y0, y1, y2 = drop[rows, best - 1], drop[rows, best], drop[rows, best + 1]
+    curvature = y0 - 2 * y1 + y2
+    shift = np.where(curvature < 0, 0.5 * (y0 - y2) / np.where(curvature < 0, curvature, -1), 0.0)
+    position = s[best] + np.clip(shift, -1, 1) * step
+    # The bend: where the fall weakens fastest, outside the peak.
+    weakening = -np.diff(drop, axis=1)
+    outside = np.arange(len(s) - 1)[None, :] >= peak[:, None]
+    bend_index = np.argmax(np.where(outside, weakening, -np.inf), axis=1)
+    bend = np.where(bend_index < len(s) - 2, s[bend_index] + step / 2 - position, np.nan)
+    ok = (peak > 0) & (peak < len(s) - 1) & (y1 >= min_strength)
+    return ((points + position[:, None] * normals)[ok], normals[ok], y1[ok], bend[ok])
+
+
+# -- pins ----------------------------------------------------------------------------------
+
+@dataclass
+class _Bar:
+    """A pin's shadow: centreline point, unit direction, half-length, half-width (px)."""
+
+    centre: np.ndarray
+    direction: np.ndarray
+    half_length: float
+    half_width: float
+
+    def distance(self, p: np.ndarray) -> np.ndarray:
+        """Distance of points to the bar's rectangle outline, signed negative inside."""
+        d = p - self.centre
+        along = np.abs(d @ self.direction) - self.half_length
+        across = np.abs(d @ np.array([-self.direction[1], self.direction[0]])) - self.half_width
+        outside = np.hypot(np.maximum(along, 0), np.maximum(across, 0))
+        return np.where((along > 0) | (across > 0), outside, np.maximum(along, across))
+
+
+def _fit_bar(p: np.ndarray) -> _Bar:
+    centre = p.mean(axis=0)
+    _, vectors = np.linalg.eigh(np.cov((p - centre).T))
+    direction = vectors[:, -1]
+    along = (p - centre) @ direction
+    across = (p - centre) @ np.array([-direction[1], direction[0]])
+    lo, hi = np.percentile(along, [0.5, 99.5])
+    centre = centre + 0.5 * (lo + hi) * direction
+    return _Bar(centre, direction, 0.5 * (hi - lo), float(np.percentile(np.abs(across), 98)))
+
+
+def _split_pins(pixels: np.ndarray, labels: np.ndarray) -> list[_Bar]:
+    """Two bars fitted to the pin pixels: by components when separate, else by k-segments."""
+    if labels.max() >= 2:
+        sizes = np.bincount(labels)[1:]
+        top = np.argsort(sizes)[::-1][:2] + 1
+        return [_fit_bar(pixels[labels == t]) for t in top]
+    bar = _fit_bar(pixels)
+    along = (pixels - bar.centre) @ bar.direction
+    assign = along > 0  # start: the two halves of the union along its axis
+    bars = [bar, bar]
+    for _ in range(20):
+        if assign.all() or not assign.any():
+            break
+        bars = [_fit_bar(pixels[~assign]), _fit_bar(pixels[assign])]
+        new = np.abs(bars[1].distance(pixels)) < np.abs(bars[0].distance(pixels))
+        new = bars[1].distance(pixels) < bars[0].distance(pixels)
+        if np.array_equal(new, assign):
+            break
+        assign = new
+    return bars
+
+
+def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | None) -> list[_Bar]:
+    if expected is not None:
+        expected = np.asarray(expected, float).reshape(2, 2)
+        cost = [np.linalg.norm(bars[0].centre - expected[0]) + np.linalg.norm(bars[1].centre - expected[1]),
+                np.linalg.norm(bars[0].centre - expected[1]) + np.linalg.norm(bars[1].centre - expected[0])]
+        return bars if cost[0] <= cost[1] else bars[::-1]
+    axis = bars[0].direction + np.sign(bars[0].direction @ bars[1].direction) * bars[1].direction
+    axis = axis * (1 if axis[0] >= 0 else -1)
+    first = bars if bars[0].centre @ axis <= bars[1].centre @ axis else bars[::-1]
+    return first if config.pin_order == "left_to_right" else first[::-1]
+
+
+def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
+          expected: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
+    """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
+    small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    lo, hi = np.percentile(small, [0.5, 99.5])
+    quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
+    background = cv2.medianBlur(quantised, 25).astype(np.float32) / 255 * (hi - lo) + lo
+    background = cv2.resize(background, A.shape[::-1], interpolation=cv2.INTER_LINEAR)
+    excess = np.where(valid, A - background, 0.0)
+    weak = excess > config.pin_threshold
+    strong = excess > 2.0 * config.pin_threshold
+    count, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    seeded = np.bincount(labels[strong], minlength=count) > 0
+    good = seeded & (sizes >= config.pin_min_area_px)
+    good[0] = False
+    mask = good[labels]
+    empty = np.zeros((0, 2))
+    if not mask.any():
+        return [empty, empty], mask, {"pins_found": 0}
+    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    ys, xs = np.nonzero(mask)
+    pixels = np.column_stack([xs, ys]).astype(float)
+    _, comp = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    bars = _order_pins(_split_pins(pixels, comp[ys, xs]), config, expected)
+    points, normals = _outline_with_normals(mask, 10)
+    # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
+    # placed on the transmitted intensity instead, where it is a blurred step.
+    transmission = cv2.GaussianBlur(np.exp(-(A - background)).astype(np.float32), (0, 0),
+                                    config.smoothing_px)
+    grad = (-cv2.Sobel(transmission, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
+            -cv2.Sobel(transmission, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
+    edges, normals, _, _ = _edges_along_normals(grad, points, normals, config.edge_search_px,
+                                                config.min_edge_strength)
+    edges = edges + config.pin_edge_offset_px * normals
+    distance = np.stack([np.abs(b.distance(edges)) for b in bars])
+    # A point on the shared outline of overlapping shadows belongs to both pins.
+    tolerance = 3.0
+    result = [edges[(distance[i] <= distance[1 - i] + 0.5) | (distance[i] < tolerance)
+                    & (distance[1 - i] < tolerance)] for i in range(2)]
+    info = {"pins_found": 2 if all(len(r) for r in result) else sum(bool(len(r)) for r in result),
+            "pin_centres_px": [b.centre.tolist() for b in bars],
+            "pin_widths_px": [2 * b.half_width for b in bars]}
+    return result, mask, info
+
+
+# -- bone ----------------------------------------------------------------------------------
+
+def _poly_terms(u: np.ndarray, v: np.ndarray, degree: int) -> np.ndarray:
+    return np.column_stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)])
+
+
+def _tissue_surface(A: np.ndarray, tissue: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """Least-squares low-order surface through the soft tissue's attenuation (downsampled)."""
+    f = config.background_downscale
+    h, w = A.shape
+    small = cv2.resize(A, (w // f, h // f), interpolation=cv2.INTER_AREA)
+    known = cv2.resize(tissue.astype(np.uint8), (w // f, h // f), interpolation=cv2.INTER_NEAREST) > 0
+    vs, us = np.nonzero(known)
+    scale = max(small.shape)
+    coef = np.linalg.lstsq(_poly_terms(us / scale - 0.5, vs / scale - 0.5, config.background_degree),
+                           small[vs, us], rcond=None)[0]
+    gv, gu = np.mgrid[0:h, 0:w]
+    # Pixel (u, v) sits at ((u + 0.5) / f - 0.5) in the small image.
+    terms = _poly_terms(((gu.ravel() + 0.5) / f - 0.5) / scale - 0.5,
+                        ((gv.ravel() + 0.5) / f - 0.5) / scale - 0.5, config.background_degree)
+    return (terms @ coef).reshape(h, w)
+
+
+def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarray,
+          grad, config: ContourConfig) -> tuple[np.ndarray, dict]:
+    """Sub-pixel outer edges of tibia with fibula, and diagnostics.
+
+    Soft tissue has no strong edges except at the skin: the tissue region is what can be
+    reached from the skin without crossing one. Regions cut off from the skin by bone (the
+    gap between tibia and fibula) are tissue too when their attenuation is that of the
+    tissue around them, unlike the marrow inside a bone, which carries the bone's walls.
+    """
+    magnitude = np.hypot(grad[0], grad[1])
+    barrier = cv2.dilate((magnitude > config.barrier_strength).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    skin = cv2.dilate(air.astype(np.uint8), cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * int(config.skin_margin_px) + 1,) * 2)) > 0
+    open_area = (valid & ~barrier & ~air).astype(np.uint8)
+    count, labels = cv2.connectedComponents(open_area, connectivity=4)
+    seeded = np.bincount(labels[skin & (open_area > 0)], minlength=count) > 0
+    seeded[0] = False
+    tissue = seeded[labels]
+    if not tissue.any():
+        raise ContourError("no soft tissue next to the skin is visible; cannot separate the bone")
+    excess = smooth - _tissue_surface(smooth, tissue & ~skin if (tissue & ~skin).any() else tissue, config)
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    level = ndimage.median(excess, labels, np.arange(count))
+    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (np.asarray(level) < config.bone_threshold)
+    enclosed_tissue[0] = False
+    tissue |= enclosed_tissue[labels]
+    bone = valid & ~air & ~tissue
+    bone = (bone | pins) & valid
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    bone = cv2.morphologyEx(bone.astype(np.uint8), cv2.MORPH_OPEN, kernel)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(bone, connectivity=8)
+    big = np.zeros(count, bool)
+    big[1:] = stats[1:, cv2.CC_STAT_AREA] >= config.min_bone_area_px
+    bone = big[labels]
+    # Holes smaller than the minimum bone area are noise inside bone, not gaps between bones.
+    holes = ndimage.binary_fill_holes(bone) & ~bone
+    hcount, hlabels, hstats, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
+    small_hole = np.zeros(hcount, bool)
+    small_hole[1:] = hstats[1:, cv2.CC_STAT_AREA] < config.min_bone_area_px
+    bone |= small_hole[hlabels]
+    points, normals = _outline_with_normals(bone, 30)
+    edges, normals, strength, bend = _edges_along_normals(
+        grad, points, normals, config.edge_search_px, config.min_edge_strength)
+    # Blur of the imaging chain (with our smoothing) from the image itself, and the outward
+    # shift that puts the steepest fall of a sqrt-onset profile back on the true outline.
+    sigma = float(np.nanmedian(bend) / (_SQRT_PEAK + _SQRT_ONSET)) if np.any(np.isfinite(bend)) else 0.0
+    edges = edges + (_SQRT_PEAK * sigma + config.bone_edge_offset_px) * normals
+    return edges, {"bone_mask_area_px": int(bone.sum()), "bone_candidates": len(points),
+                   "edge_blur_sigma_px": sigma,
+                   "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
+
+
+def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    h, w = allowed.shape
+    pix = np.round(points).astype(int)
+    inside = (pix[:, 0] >= 0) & (pix[:, 1] >= 0) & (pix[:, 0] < w) & (pix[:, 1] < h)
+    ok = np.zeros(len(points), bool)
+    ok[inside] = allowed[pix[inside, 1], pix[inside, 0]]
+    return points[ok]
+
+
+def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig(),
+                     expected_pins: np.ndarray | None = None) -> ExtractedContours:
+    """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
+
+    ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
+    initial pose) that decide the labels instead of ``config.pin_order``.
+    """
+    start = time.perf_counter()
+    image = np.asarray(pixels)
+    if image.ndim != 2 or min(image.shape) < 64:
+        raise ContourError(f"expected a 2-D grey-scale frame of at least 64 x 64, got {image.shape}")
+    h, w = image.shape
+    centre, radius, outside, sign = _field_of_view(image, config.polarity)
+    A = _attenuation(image, outside, sign)
+    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    r = np.hypot(u - centre[0], v - centre[1])
+    valid = r < (radius if radius is not None else np.inf) - 2.0
+    if radius is None:
+        valid &= (u >= 2) & (v >= 2) & (u < w - 2) & (v < h - 2)
+    fill = float(np.median(A[valid]))
+    A = np.where(valid, A, fill).astype(np.float32)
+    smooth = cv2.GaussianBlur(A, (0, 0), config.smoothing_px)
+    grad = (cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
+            cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
+    coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
+    air = valid & (coarse < np.percentile(coarse[valid], 0.5) + config.air_margin)
+
+    (pin1, pin2), pins, pin_info = _pins(A, valid, config, expected_pins)
+    bone, bone_info = _bone(smooth, valid, air, pins, grad, config)
+    margin = config.fov_margin_px
+    rim_ok = r < (radius if radius is not None else np.inf) - margin
+    if radius is None:
+        rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+    near_pin = cv2.dilate(pins.astype(np.uint8), cv2.getStructuringElement(
+        cv2.MORPH_ELLIPSE, (2 * int(config.pin_exclusion_px) + 1,) * 2)) > 0
+    near_air = cv2.dilate(air.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    bone = _keep(bone, rim_ok & ~near_pin & ~near_air)
+    pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
+    diagnostics = {
+        "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
+        "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
+        "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
+        "seconds": time.perf_counter() - start,
+    }
+    return ExtractedContours(bone, pin1, pin2, diagnostics)
+
+
+def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:
+    """Hand-drawn contours: ``(coordinates, {view_id: contours})``.
+
+    Format ``slamtka-contours/1``: ``{"format", "units": "px", "coordinates": "raw" |
+    "undistorted", "views": [{"view_id", "bone" (or "tibia"), "pin1", "pin2"}]}`` with points
+    as ``[u, v]`` pairs. ``coordinates`` defaults to ``undistorted`` (the case-folder file);
+    points drawn on the frames as received are ``raw`` and are undistorted with the
+    calibration before solving.
+    """
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ContourError(f"{path}: cannot read contours ({exc})") from None
+    if doc.get("format") != _CONTOURS_FORMAT:
+        raise ContourError(f"{path}: format {doc.get('format')!r} is not {_CONTOURS_FORMAT!r}")
+    if doc.get("units", "px") != "px":
+        raise ContourError(f"{path}: units {doc.get('units')!r} are not px")
+    coordinates = doc.get("coordinates", "undistorted")
+    if coordinates not in ("raw", "undistorted"):
+        raise ContourError(f"{path}: coordinates {coordinates!r} must be raw or undistorted")
+    views: dict[str, ExtractedContours] = {}
+    for i, entry in enumerate(doc.get("views") or []):
+        view_id = str(entry.get("view_id") or "")
+        if not view_id or view_id in views:
+            raise ContourError(f"{path}: view {i} has a missing or repeated view_id")
+        if ("bone" in entry) == ("tibia" in entry):
+            raise ContourError(f"{path}: view {view_id} needs exactly one of 'bone' or 'tibia'")
+        labelled = {}
+        for label, key in (("bone", "bone" if "bone" in entry else "tibia"), ("pin1", "pin1"),
+                           ("pin2", "pin2")):
+            try:
+                pts = np.asarray(entry.get(key, []), dtype=float).reshape(-1, 2)
+            except ValueError:
+                raise ContourError(f"{path}: view {view_id} {key} must be a list of [u, v]") from None
+            if not np.all(np.isfinite(pts)):
+                raise ContourError(f"{path}: view {view_id} {key} has non-finite points")
+            labelled[label] = pts
+        views[view_id] = ExtractedContours(**labelled, diagnostics={"source": "manual"})
+    if not views:
+        raise ContourError(f"{path}: no views")
+    return coordinates, views

@@ -1,0 +1,189 @@
+"""Result documents against the published schema; SR and SC against dciodvfy and dsrdump."""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+import subprocess
+
+import highdicom as hd
+import numpy as np
+import pydicom
+import pytest
+from pydicom.uid import generate_uid
+
+from solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
+from solver.plan import Plan, Target
+from solver.simulate import SimulationConfig, simulate_case
+from solver.slam import InitialGuess, SolveOutcome
+
+from service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
+from service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from service.frames import encode_frame
+from service.pipeline import plane_polygon
+from service.results import build_result, result_schema, validate_result
+from service_testing import small_frame
+
+needs_dicom3tools = pytest.mark.skipif(shutil.which("dciodvfy") is None or
+                                       shutil.which("dsrdump") is None,
+                                       reason="dicom3tools/DCMTK not installed")
+
+
+@pytest.fixture(scope="module")
+def truth_case():
+    """A simulated case and an outcome at its true poses (no solve needed for documents)."""
+    plan = Plan.phantom("right", Target(0.0, 3.0, 3.0))
+    case = simulate_case(plan, SimulationConfig(seed=5))
+    pins = case.truth_T_tibia_pin
+    plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
+    cov = angle_covariance(pins, np.eye(12) * 1e-6, plan.pin_length(), plan.landmarks)
+    outcome = SolveOutcome("measured", "", None, case.truth_T_cam_tibia, pins, plane, cov,
+                           {"E_rp": 1.0}, {"E_rp": 10.0}, 12, 0.4, True, "converged",
+                           {"view1/bone": 300})
+    return plan, case, outcome
+
+
+def _sources(n: int) -> list[dict]:
+    return [{"view_id": f"view{k}", "sop_instance_uid": generate_uid(), "sop_class_uid":
+             "1.2.840.10008.5.1.4.1.1.12.1", "series_instance_uid": generate_uid(),
+             "acquisition_datetime": "2025-03-14T09:26:53.589793+00:00",
+             "positioner": {"primary_angle_deg": -30.0, "secondary_angle_deg": 0.0,
+                            "sid_mm": 1000.0, "sod_mm": 620.0},
+             "initialisation": "dicom_positioner", "encoder_reading": None, "angle_check": None,
+             "contours": "extracted", "used": True} for k in range(1, n + 1)]
+
+
+def _document(plan, case, outcome) -> dict:
+    return build_result(
+        case_id="case-0123456789abcdef", run_id="0123456789abcdef",
+        case={"patient_id": "P-1", "study_instance_uid": generate_uid(), "laterality": "R"},
+        sources=_sources(2), outcome=outcome, plan=plan, views=case.views,
+        calibration={"id": "carm-1", "sha256": "ab" * 32},
+        initial=InitialGuess(tuple(case.initial.T_cam_tibia), tuple(case.initial.T_tibia_pin)),
+        reasons=[], timings={"solve_s": 0.4, "total_s": 0.9},
+        outputs={"folder": "/out", "recording": "/out/recording.rrd",
+                 "sr_sop_instance_uid": generate_uid(), "sc_sop_instance_uids": {}})
+
+
+def test_the_published_schema_is_a_valid_json_schema():
+    import jsonschema
+
+    jsonschema.Draft202012Validator.check_schema(result_schema())
+
+
+def test_measured_document_validates_and_carries_the_measurement(truth_case):
+    plan, case, outcome = truth_case
+    doc = _document(plan, case, outcome)
+    assert doc["status"] == "measured" and doc["reason"] is None
+    assert doc["angles"]["ctr_deg"] == pytest.approx(case.truth_ctr_deg, abs=1e-9)
+    assert doc["angles"]["str_deg"] == pytest.approx(case.truth_str_deg, abs=1e-9)
+    expected = ("pass" if abs(case.truth_ctr_deg) <= 3 and abs(case.truth_str_deg - 3) <= 3
+                else "fail")
+    assert doc["verdict"] == expected
+    assert "varus" in doc["sign_convention"]["CTR"]
+    assert doc["calibration"]["sha256"] == "ab" * 32 and len(doc["sources"]) == 2
+    json.loads(json.dumps(doc))  # plain JSON all the way down
+
+
+def test_refused_document_validates_with_reasons_and_no_angles():
+    doc = build_result(case_id="case-x", run_id="0123456789abcdef",
+                       case={"patient_id": "P-2", "study_instance_uid": "1.2.3", "laterality": None},
+                       sources=_sources(2), outcome=None, plan=None, views=[], calibration=None,
+                       initial=None, reasons=["no plan for patient 'P-2'"],
+                       timings={"total_s": 0.1},
+                       outputs={"folder": "/o", "recording": "/o/r.rrd",
+                                "sr_sop_instance_uid": "1.2.3.4", "sc_sop_instance_uids": {}})
+    assert doc["status"] == "not_measured" and doc["verdict"] == "not_measured"
+    assert doc["angles"] is None and doc["reason"] == "no plan for patient 'P-2'"
+
+
+@pytest.mark.parametrize("tamper,where", [
+    (lambda d: d.pop("sources"), "(root)"),
+    (lambda d: d.update(surprise=1), "(root)"),
+    (lambda d: d["angles"].update(ctr_deg="3"), "angles"),
+    (lambda d: d.update(status="maybe"), "status"),
+    (lambda d: d["poses"]["T_tibia_pin"].pop(), "poses/T_tibia_pin"),
+    (lambda d: d["sources"][0].update(sop_instance_uid="1.2.x"), "sources/0/sop_instance_uid"),
+])
+def test_schema_refuses_broken_documents_naming_the_place(truth_case, tamper, where):
+    doc = copy.deepcopy(_document(*truth_case))
+    tamper(doc)
+    with pytest.raises(ValueError) as err:
+        validate_result(doc)
+    assert where in str(err.value)
+
+
+def _dciodvfy_errors(path) -> list[str]:
+    out = subprocess.run(["dciodvfy", str(path)], capture_output=True, text=True, timeout=60)
+    return [line for line in (out.stdout + out.stderr).splitlines() if line.startswith("Error")]
+
+
+@needs_dicom3tools
+def test_sr_passes_dciodvfy_and_reads_back_with_dsrdump(truth_case, tmp_path):
+    plan, case, outcome = truth_case
+    doc = _document(plan, case, outcome)
+    evidence = [encode_frame(small_frame()) for _ in range(2)]
+    for ds in evidence[1:]:
+        ds.StudyInstanceUID = evidence[0].StudyInstanceUID
+    axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
+    geometry = SrGeometry(tibia_frame_of_reference_uid("cd" * 32),
+                          plane_polygon(outcome.plane.point, outcome.plane.normal), axes,
+                          [88.0, 91.0], "right")
+    sr = build_sr(doc, evidence, geometry, series_uid=generate_uid(), sop_instance_uid=generate_uid())
+    path = tmp_path / "sr.dcm"
+    sr.save_as(path, enforce_file_format=True)
+    assert _dciodvfy_errors(path) == []
+    dump = subprocess.run(["dsrdump", str(path)], capture_output=True, text=True, timeout=60)
+    assert dump.returncode == 0, dump.stderr
+    text = dump.stdout
+    assert "Comprehensive 3D SR" in text and "Imaging Measurement Report" in text
+    assert f'"Coronal tibial resection angle")="{doc["angles"]["ctr_deg"]:.6g}'[:45] in text
+    assert "(deg,UCUM" in text and "Standard Deviation" in text and "POLYGON" in text
+    assert text.count("POLYLINE") == 2 and "Trocar pin 2" in text
+    # highdicom parses it back to the same numbers
+    back = hd.sr.Comprehensive3DSR.from_dataset(pydicom.dcmread(path))
+    groups = back.content.get_planar_roi_measurement_groups()
+    values = {(m.name.meaning, m.derivation is not None): m.value for m in groups[0].get_measurements()}
+    assert values[("Coronal tibial resection angle", False)] == pytest.approx(doc["angles"]["ctr_deg"])
+    assert values[("Sagittal tibial resection angle", True)] == pytest.approx(doc["angles"]["str_sigma_deg"])
+    region = groups[0].roi
+    assert region.frame_of_reference_uid == geometry.frame_of_reference_uid
+    assert np.allclose(region.value, geometry.plane_polygon, atol=1e-3)
+
+
+@needs_dicom3tools
+def test_not_measured_sr_and_sc_pass_dciodvfy(tmp_path):
+    frame = small_frame(pixels=np.random.default_rng(2).integers(0, 4000, (256, 256)).astype(np.uint16))
+    source = encode_frame(frame)
+    doc = {"status": "not_measured", "angles": None, "deviation": None,
+           "software": {"version": "0.1.0"}, "inputs": None, "case": {"laterality": "R"}}
+    sr = build_sr(doc, [source], None, series_uid=generate_uid(), sop_instance_uid=generate_uid())
+    sr.save_as(tmp_path / "sr.dcm", enforce_file_format=True)
+    assert _dciodvfy_errors(tmp_path / "sr.dcm") == []
+    dump = subprocess.run(["dsrdump", str(tmp_path / "sr.dcm")], capture_output=True, text=True)
+    assert "Not measured" in dump.stdout
+    t = np.linspace(0, 2 * np.pi, 400)
+    overlay = ScOverlay({"bone": np.c_[128 + 60 * np.cos(t), 128 + 90 * np.sin(t)]},
+                        text=["NOT MEASURED", "no plan"])
+    rgb = render_overlay(frame.pixels, overlay)
+    assert rgb.shape == (256, 256, 3) and rgb.dtype == np.uint8
+    assert np.all(rgb[128 + 90, 128] == (255, 220, 0))  # a contour pixel in the bone colour
+    for orientation in (None, ("L", "F")):
+        sc = build_sc(source, rgb, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
+                      instance_number=1, orientation=orientation)
+        sc.save_as(tmp_path / "sc.dcm", enforce_file_format=True)
+        assert _dciodvfy_errors(tmp_path / "sc.dcm") == []
+        back = pydicom.dcmread(tmp_path / "sc.dcm")
+        assert back.PatientID == frame.patient_id and back.StudyInstanceUID == frame.study_uid
+        assert back.SourceImageSequence[0].ReferencedSOPInstanceUID == frame.sop_instance_uid
+        assert np.array_equal(back.pixel_array, rgb)
+
+
+def test_patient_orientation_letters_follow_the_camera_axes():
+    # Camera x along the patient's left, y towards the feet: rows "L", columns "F".
+    R = np.column_stack([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    assert patient_orientation(R) == ("L", "F")
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    R = np.column_stack([[c, s, 0.0], [0.0, 0.0, -1.0], [-s, c, 0.0]])
+    assert patient_orientation(R) == ("RA", "F")

@@ -1,0 +1,124 @@
+"""The durable send queue: C-STORE over loopback, retries with backoff, survival of restarts."""
+
+from __future__ import annotations
+
+import time
+
+from pydicom.uid import generate_uid
+
+from service.audit import AuditLog, read_audit
+from service.config import Destination, SenderConfig
+from service.frames import encode_frame
+from service.sender import OutgoingObject, Sender
+from service.theatre import ResultCollector
+from service_testing import free_port, small_frame
+
+SC = "1.2.840.10008.5.1.4.1.1.7"
+
+
+def _objects(tmp_path, n=2) -> list[OutgoingObject]:
+    """Secondary Capture stand-ins: XA frames re-labelled as SC (the sink accepts SC)."""
+    out = []
+    for k in range(n):
+        ds = encode_frame(small_frame())
+        ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID = SC
+        ds.Modality = "OT"
+        path = tmp_path / f"sc-{k}.dcm"
+        ds.save_as(path, enforce_file_format=True)
+        out.append(OutgoingObject(path, "sc", SC, str(ds.SOPInstanceUID)))
+    return out
+
+
+def _sender(tmp_path, port, objects=("sr", "sc"), **config) -> tuple[Sender, AuditLog]:
+    audit = AuditLog(tmp_path / "audit.jsonl")
+    dest = Destination("display", "ORDISPLAY", "127.0.0.1", port, list(objects))
+    settings = SenderConfig(**{"retry_initial_s": 0.2, "retry_max_s": 0.5, "max_attempts": 3,
+                               "timeout_s": 5.0, **config})
+    return Sender("SLAMTKA", [dest], settings, tmp_path / "queue", audit), audit
+
+
+def test_results_are_delivered_by_c_store(tmp_path):
+    sink = ResultCollector()
+    sender, audit = _sender(tmp_path, sink.port)
+    objects = _objects(tmp_path)
+    try:
+        sender.enqueue(objects, "case-1", "run-1")
+        assert len(sender.pending()) == 2
+        assert sender.run_once() == 2
+        received = sink.wait(lambda ds: True, 5.0, count=2)
+        assert sorted(ds.SOPInstanceUID for _, ds in received) == sorted(o.sop_instance_uid for o in objects)
+        assert sender.pending() == [] and sender.failed() == []
+        sent = [e for e in read_audit(audit.path) if e["event"] == "sent"]
+        assert [e["destination"] for e in sent] == ["display", "display"]
+    finally:
+        sink.stop()
+        audit.close()
+
+
+def test_destination_filters_object_kinds(tmp_path):
+    sender, audit = _sender(tmp_path, free_port(), objects=("sr",))
+    assert sender.enqueue(_objects(tmp_path, 1), "case-1", "run-1") == []
+    audit.close()
+
+
+def test_a_down_destination_is_retried_with_backoff_and_survives_a_restart(tmp_path):
+    port = free_port()
+    sender, audit = _sender(tmp_path, port)
+    objects = _objects(tmp_path, 1)
+    sender.enqueue(objects, "case-1", "run-1")
+    assert sender.run_once() == 0
+    (job,) = sender.pending()
+    assert job.attempts == 1 and ("association" in job.last_error or "connect" in job.last_error)
+    assert job.next_attempt > time.time()  # backing off
+    assert sender.run_once() == 0 and sender.pending()[0].attempts == 1  # not due yet
+    audit.close()
+
+    # A new sender (the service restarted) finds the job on disk and delivers it.
+    sink = ResultCollector(port=port)
+    restarted, audit = _sender(tmp_path, port)
+    try:
+        assert restarted.run_once(now=time.time() + 1.0) == 1
+        assert [ds.SOPInstanceUID for _, ds in sink.wait(lambda ds: True, 5.0)] == [
+            objects[0].sop_instance_uid]
+        events = [e["event"] for e in read_audit(audit.path)]
+        assert events == ["send_failed", "sent"]
+    finally:
+        sink.stop()
+        audit.close()
+
+
+def test_after_max_attempts_a_job_is_abandoned_to_the_failed_folder(tmp_path):
+    sender, audit = _sender(tmp_path, free_port(), max_attempts=2)
+    sender.enqueue(_objects(tmp_path, 1), "case-1", "run-1")
+    sender.run_once()
+    sender.run_once(now=time.time() + 10.0)
+    assert sender.pending() == [] and len(sender.failed()) == 1
+    assert [e["event"] for e in read_audit(audit.path)] == ["send_failed", "send_abandoned"]
+    audit.close()
+
+
+def test_the_worker_thread_sends_as_soon_as_a_job_is_queued(tmp_path):
+    sink = ResultCollector()
+    sender, audit = _sender(tmp_path, sink.port)
+    sender.start()
+    try:
+        sender.enqueue(_objects(tmp_path, 1), "case-1", "run-1")
+        assert len(sink.wait(lambda ds: True, 10.0)) == 1
+    finally:
+        sender.stop()
+        sink.stop()
+        audit.close()
+
+
+def test_a_refused_association_is_a_failure_with_the_reason(tmp_path):
+    sink = ResultCollector(ae_title="ORDISPLAY")
+    audit = AuditLog(tmp_path / "audit.jsonl")
+    wrong_title = Destination("display", "WRONGAE", "127.0.0.1", sink.port, ["sc"])
+    sender = Sender("SLAMTKA", [wrong_title], SenderConfig(timeout_s=5.0), tmp_path / "queue", audit)
+    try:
+        sender.enqueue(_objects(tmp_path, 1), "case-1", generate_uid())
+        assert sender.run_once() == 0
+        assert "association rejected" in sender.pending()[0].last_error
+    finally:
+        sink.stop()
+        audit.close()
