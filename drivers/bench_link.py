@@ -13,7 +13,9 @@ C-arm over real pseudo-terminals, printed and written to ``link.json``.
 
 The simulated C-arm runs in a child process, as a real device would be elsewhere: it shares
 no interpreter lock with the driver, and the monotonic clock both read is the same, so its
-timestamps give true latencies.
+timestamps give true latencies. Each section also records how late a 5 ms sleep woke up in
+this process and the load average: on a shared machine, a long scheduling delay explains an
+outlier that the driver did not cause.
 """
 
 from __future__ import annotations
@@ -87,6 +89,36 @@ class SimProcess:
         if isinstance(result, Exception):
             raise result
         return result
+
+
+class _HostProbe:
+    """Measures how late a 5 ms sleep wakes up while a section runs (scheduling delays)."""
+
+    def __init__(self) -> None:
+        self._late: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="host-probe", daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            t = time.monotonic()
+            time.sleep(0.005)
+            self._late.append(time.monotonic() - t - 0.005)
+
+    def __enter__(self) -> _HostProbe:
+        self._load = os.getloadavg()[0]
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def summary(self) -> dict:
+        late = 1000.0 * np.array(self._late)
+        return {"sleep_overshoot_p99_ms": float(np.percentile(late, 99)),
+                "sleep_overshoot_max_ms": float(late.max()),
+                "load_average_1min": [self._load, os.getloadavg()[0]]}
 
 
 class _StateLog:
@@ -334,16 +366,21 @@ def _figures(r: dict, corrupted_target: int) -> list[dict]:
 
 def run_link_bench(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
-    print(f"corruption: streaming at {args.fast_rate_hz} Hz until {args.corrupted_frames} frames "
-          "are corrupted ...", flush=True)
-    results = {"corruption": bench_corruption(args.corrupted_frames, args.fast_rate_hz, args.faults,
-                                              args.seed)}
-    print(f"latency: {args.latency_s:g} s at 100 Hz ...", flush=True)
-    results["latency"] = bench_latency(args.latency_s, 100)
-    print(f"stalls: {args.stalls} ...", flush=True)
-    results["stalls"] = bench_stalls(args.stalls, 100, args.seed)
-    print(f"disconnect cycles: {args.cycles} ...", flush=True)
-    results["disconnects"] = bench_disconnects(args.cycles, 100, args.seed)
+    sections = {
+        "corruption": (f"streaming at {args.fast_rate_hz} Hz until {args.corrupted_frames} frames are "
+                       "corrupted", lambda: bench_corruption(args.corrupted_frames, args.fast_rate_hz,
+                                                             args.faults, args.seed)),
+        "latency": (f"{args.latency_s:g} s at 100 Hz", lambda: bench_latency(args.latency_s, 100)),
+        "stalls": (f"{args.stalls} stalls", lambda: bench_stalls(args.stalls, 100, args.seed)),
+        "disconnects": (f"{args.cycles} disconnect cycles",
+                        lambda: bench_disconnects(args.cycles, 100, args.seed)),
+    }
+    results = {}
+    for name, (what, run) in sections.items():
+        print(f"{name}: {what} ...", flush=True)
+        with _HostProbe() as probe:
+            results[name] = run()
+        results[name]["host"] = probe.summary()
     figures = _figures(results, args.corrupted_frames)
     doc = {"format": "slamtka-bench-link/1", "created_utc": datetime.now(timezone.utc).isoformat(),
            "environment": {"python": platform.python_version(), "pyserial": serial.__version__,
@@ -360,6 +397,9 @@ def run_link_bench(args: argparse.Namespace) -> int:
           f"{c['parser']['header_errors']} headers and {c['parser']['crc_errors']} frame CRCs; "
           f"latency p95 {results['latency']['latency']['p95_ms']:.2f} ms; "
           f"reconnect median {results['disconnects']['reconnected_after_return']['median_ms']:.0f} ms")
+    worst = max(results.values(), key=lambda r: r["host"]["sleep_overshoot_max_ms"])["host"]
+    print(f"host scheduling: a 5 ms sleep overshot by up to {worst['sleep_overshoot_max_ms']:.0f} ms "
+          f"(load average {max(worst['load_average_1min']):.1f} on {os.cpu_count()} CPUs)")
     print(f"wrote {args.out / 'link.json'}")
     return 0 if all(f["met"] for f in figures) else 1
 

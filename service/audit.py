@@ -15,7 +15,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-__all__ = ["AuditLog", "read_audit", "EVENTS"]
+__all__ = ["AuditLog", "read_audit", "last_event", "EVENTS"]
 
 EVENTS = ("service_started", "service_stopped", "association_rejected", "received", "rejected",
           "duplicate", "case_triggered", "processed", "failed", "sent", "send_failed",
@@ -63,3 +63,21 @@ def read_audit(path: Path) -> Iterator[dict]:
                 yield json.loads(raw)
             except json.JSONDecodeError:
                 continue
+
+
+def last_event(path: Path, event: str, tail_bytes: int = 1 << 20) -> dict | None:
+    """The newest entry of kind ``event`` within the last ``tail_bytes`` of the log."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    with path.open("rb") as f:
+        f.seek(max(0, f.seek(0, os.SEEK_END) - tail_bytes))
+        lines = f.read().splitlines()
+    for raw in reversed(lines):
+        try:
+            entry = json.loads(raw)
+        except json.JSONDecodeError:
+            continue  # torn, or cut by the tail window
+        if entry.get("event") == event:
+            return entry
+    return None

@@ -70,7 +70,6 @@ class Sender:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.on_sent = None  # optional callback(job) for metrics
 
     # -- queue ------------------------------------------------------------------------------
     def enqueue(self, objects: list[OutgoingObject], case_id: str, run_id: str) -> list[SendJob]:
@@ -159,8 +158,6 @@ class Sender:
         if not error:
             self.audit.record("sent", attempts=job.attempts + 1, **fields)
             path.unlink(missing_ok=True)
-            if self.on_sent is not None:
-                self.on_sent(job)
             return 1
         job.attempts += 1
         job.last_error = error

@@ -28,7 +28,7 @@ from pathlib import Path
 from drivers.encoder_link import EncoderLink, LinkConfig
 from drivers.kinematics import CArmKinematics
 
-from .audit import AuditLog
+from .audit import AuditLog, last_event
 from .cases import Case, CaseAssembler, run_id_of
 from .config import ServiceConfig, load_config
 from .pipeline import Pipeline
@@ -85,7 +85,7 @@ class Service:
         self._worker: threading.Thread | None = None
         self._state = "starting"
         self._started = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        self._last_result: dict | None = None
+        self._last_result = last_event(config.audit_log, "processed")
         self.status = StatusBoard(config.status_file, {
             "state": lambda: self._state, "started": lambda: self._started,
             "dicom": self._dicom_status, "spool": lambda: {"instances": self.spool.count(),
@@ -154,39 +154,40 @@ class Service:
 
     # -- the worker -----------------------------------------------------------------------
     def _work(self, due: list[Case]) -> None:
-        pending = {c.case_id: c for c in due}
+        pending = {c.case_id: c for c in due}  # cases to run, oldest first
         while True:
-            if not pending:
-                item = self._incoming.get()
-                if item is None:
-                    return
-                batch = [item]
-            else:
-                batch = []
+            batch = [] if pending else [self._incoming.get()]
             # Take everything already waiting, so views that arrive together run once.
             while True:
                 try:
                     batch.append(self._incoming.get_nowait())
                 except queue.Empty:
                     break
+            if None in batch:  # stopping; what was spooled is recovered at the next start
+                return
             for entry in batch:
-                if entry is None:
-                    return
-                case, is_due = self.assembler.add(entry)
-                if case is not None:
-                    self._prepare(case, case.views[entry.sop_instance_uid])
-                if is_due:
-                    pending[case.case_id] = case
+                self._assemble(entry, pending)
             if pending:
-                _, case = pending.popitem()
-                self._process(case)
+                self._process(pending.pop(next(iter(pending))))
             self.status.write()
 
-    def _prepare(self, case: Case, view) -> None:
+    def _assemble(self, entry: SpoolEntry, pending: dict[str, Case]) -> None:
+        """Put a received instance into its case and extract its contours ahead of the run."""
         try:
-            self.pipeline.prepare(case, view)
-        except Exception:  # the run will meet (and audit) the same problem
-            log.exception("preparing view %s of case %s failed", view.entry.id, case.case_id)
+            case, due = self.assembler.add(entry)
+        except Exception as exc:  # one bad instance must not stop the worker; it is audited
+            log.exception("cannot assemble instance %s", entry.id)
+            self.audit.record("failed", sop_instance_uid=entry.sop_instance_uid,
+                              error=f"{type(exc).__name__}: {exc}")
+            return
+        if case is None:
+            return
+        try:
+            self.pipeline.prepare(case, case.views[entry.sop_instance_uid])
+        except Exception:  # the run will meet, and report, the same problem
+            log.exception("extracting the contours of instance %s ahead failed", entry.id)
+        if due:
+            pending[case.case_id] = case
 
     def _process(self, case: Case) -> None:
         views = case.selection(self.config.pipeline.max_views)
@@ -206,14 +207,11 @@ class Service:
             return
         doc = outcome.doc
         angles = doc["angles"] or {}
-        self.audit.record("processed", case_id=case.case_id, run_id=run_id, status=doc["status"],
-                          verdict=doc["verdict"], reason=doc["reason"],
-                          ctr_deg=angles.get("ctr_deg"), str_deg=angles.get("str_deg"),
-                          seconds=doc["timings"]["total_s"], folder=str(outcome.folder))
-        self._last_result = {"case_id": case.case_id, "run_id": run_id, "time": doc["created"],
-                             "status": doc["status"], "verdict": doc["verdict"],
-                             "reason": doc["reason"], "ctr_deg": angles.get("ctr_deg"),
-                             "str_deg": angles.get("str_deg"), "folder": str(outcome.folder)}
+        self._last_result = self.audit.record(
+            "processed", case_id=case.case_id, run_id=run_id, status=doc["status"],
+            verdict=doc["verdict"], reason=doc["reason"], ctr_deg=angles.get("ctr_deg"),
+            str_deg=angles.get("str_deg"), seconds=doc["timings"]["total_s"],
+            folder=str(outcome.folder))
 
 
 def cmd_serve(args: argparse.Namespace) -> int:

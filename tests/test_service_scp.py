@@ -88,6 +88,7 @@ def test_refused_calling_and_called_ae_titles(scp):
                        ("CARM1", "called AE title 'OTHER' is not ours")]
 
 
+@pytest.mark.filterwarnings("ignore:Invalid value for VR UI")
 def test_invalid_instances_get_a_failure_status_with_the_reason(scp):
     receiver, stored, tmp_path = scp
     assoc = _client().associate("127.0.0.1", receiver.port, ae_title="SLAMTKA")
@@ -145,6 +146,7 @@ def _tls_client(pki, cert="client", maximum=None) -> tuple:
     return ctx, None
 
 
+@pytest.mark.filterwarnings("ignore:ssl.TLSVersion.TLSv1_1 is deprecated")
 def test_mutual_tls(tmp_path, pki):
     receiver, stored, audit = _receiver(tmp_path, tls={
         "enabled": True, "certificate": str(pki["server_cert"]),
@@ -173,6 +175,20 @@ def test_mutual_tls(tmp_path, pki):
                                   str(pki["ca"]), "127.0.0.1", str(receiver.port)],
                                  capture_output=True, text=True, timeout=30)
             assert out.returncode == 0, out.stderr
+    finally:
+        receiver.stop()
+        audit.close()
+
+
+def test_associations_beyond_the_limit_are_refused_and_audited(tmp_path):
+    receiver, stored, audit = _receiver(tmp_path, max_associations=1)
+    try:
+        first = _client().associate("127.0.0.1", receiver.port, ae_title="SLAMTKA")
+        second = _client().associate("127.0.0.1", receiver.port, ae_title="SLAMTKA")
+        assert first.is_established and second.is_rejected
+        first.release()
+        assert [e["reason"] for e in _events(tmp_path, "association_rejected")] == [
+            "too many associations"]
     finally:
         receiver.stop()
         audit.close()

@@ -1,0 +1,82 @@
+"""The rerun recording of a run: written to a file, read back headless, checked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solver.optimizer import IterationInfo, State
+from solver.plan import Plan
+
+from service.recording import CaseRecorder
+from service.replay import check_recording, read_recording
+from service_testing import small_frame
+
+
+@pytest.fixture(scope="module")
+def plan():
+    return Plan.phantom("right")
+
+
+def _record(path, plan, result: dict) -> None:
+    rec = CaseRecorder(path, "case-x", "run-y")
+    rec.stage("frames", "1 view")
+    rec.frame("view1", small_frame(), {"primary_angle_deg": -30.0, "secondary_angle_deg": 0.0,
+                                       "sid_mm": 1000.0, "sod_mm": None})
+    rec.encoder("view1", "encoders", {"joints": {"orbital": -30.0}})
+    rec.stage("calibration", "carm-1")
+    rec.calibration({"id": "carm-1", "sha256": "ab" * 32})
+    rec.plan(plan)
+    rec.stage("contours")
+    rec.contours("view1", {"bone": np.random.default_rng(0).random((40, 2)) * 60,
+                           "pin1": np.zeros((5, 2)), "pin2": np.ones((7, 2))}, "extracted")
+    rec.stage("solve")
+    poses = (plan.landmarks.T_tibia_anat(),) * 3
+    for k, cost in enumerate((10.0, 4.0, 3.5)):
+        rec.iteration("joint", IterationInfo(k, cost, {"E_rp": cost / 2}, 1e-3, True,
+                                             State(poses, np.zeros((0, 3)))))
+    rec.stage("results")
+    rec.result(result)
+    rec.close()
+
+
+def test_a_recording_reads_back_stage_by_stage(tmp_path, plan):
+    path = tmp_path / "recording.rrd"
+    result = {"case_id": "case-x", "status": "not_measured", "angles": None}
+    _record(path, plan, result)
+    rec = read_recording(path)
+    assert rec.recording_id == "case-x-run-y"
+    assert rec.texts["pipeline/stages"] == ["frames: 1 view", "calibration: carm-1", "contours",
+                                            "solve", "results"]
+    assert rec.views() == ["view1"]
+    assert rec.points == {"views/view1/contours/bone": 40, "views/view1/contours/pin1": 5,
+                          "views/view1/contours/pin2": 7}
+    assert rec.scalars["solver/cost"] == [10.0, 4.0, 3.5]
+    assert rec.documents["views/view1/encoder"]["initialisation"] == "encoders"
+    assert rec.result == result and rec.documents["calibration"]["id"] == "carm-1"
+    # Meshes come back exactly as float32 vertices and the same triangles.
+    assert np.array_equal(rec.meshes["plan/tibia"].faces, plan.tibia.faces)
+    assert np.array_equal(rec.meshes["plan/tibia"].vertices,
+                          plan.tibia.vertices.astype(np.float32).astype(float))
+
+
+def test_check_names_every_difference(tmp_path, plan):
+    path = tmp_path / "recording.rrd"
+    result = {"case_id": "case-x", "run_id": "run-y", "status": "not_measured", "reason": "r",
+              "angles": None, "sources": [{"sop_instance_uid": "1.2"}]}
+    _record(path, plan, result)
+    rec = read_recording(path)
+    assert check_recording(rec, result) == []
+    changed = {**result, "reason": "other", "sources": [{"sop_instance_uid": "1.3"}]}
+    problems = check_recording(rec, changed)
+    assert any(p.startswith("reason:") for p in problems)
+    assert "source SOP Instance UIDs differ" in problems
+
+
+def test_unreadable_recordings_are_refused_clearly(tmp_path):
+    with pytest.raises(ValueError, match="no such recording"):
+        read_recording(tmp_path / "none.rrd")
+    junk = tmp_path / "junk.rrd"
+    junk.write_bytes(b"not a recording at all")
+    with pytest.raises(ValueError, match="cannot be read as a rerun recording"):
+        read_recording(junk)
