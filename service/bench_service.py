@@ -26,10 +26,8 @@ import platform
 import time
 from pathlib import Path
 
-import highdicom as hd
 import numpy as np
 
-from .dicom_sr import CODES
 from .theatre import Theatre, TheatreCase, parse_angles
 
 __all__ = ["add_service_bench_parser", "run_service_bench"]
@@ -37,6 +35,10 @@ __all__ = ["add_service_bench_parser", "run_service_bench"]
 
 def _angles_from_sr(sr) -> dict:
     """CTR/STR (deg) as the OR display reads them from the SR, or the refusal."""
+    import highdicom as hd  # here: `slamtka` starts without it unless benchmarking
+
+    from .dicom_sr import CODES
+
     report = hd.sr.Comprehensive3DSR.from_dataset(sr)
     groups = report.content.get_planar_roi_measurement_groups()
     if not groups:

@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from rerun.chunk import RrdReader
 
 from solver.anatomy import Landmarks
 from solver.camera import Camera
@@ -32,7 +31,6 @@ from solver.plan import Plan, Target
 from solver.sdf import mesh_digest
 from solver.slam import InitialGuess, SolverConfig, solve_joint
 
-from .recording import APPLICATION_ID
 
 __all__ = ["Recording", "read_recording", "check_recording", "resolve_recording",
            "add_replay_parser"]
@@ -65,6 +63,10 @@ class Recording:
 
 
 def read_recording(path: Path) -> Recording:
+    from rerun.chunk import RrdReader  # here: keeps every other `slamtka` command quick to start
+
+    from .recording import APPLICATION_ID
+
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: no such recording")

@@ -31,7 +31,6 @@ from drivers.kinematics import CArmKinematics
 from .audit import AuditLog, last_event
 from .cases import Case, CaseAssembler, run_id_of
 from .config import ServiceConfig, load_config
-from .pipeline import Pipeline
 from .plans import PlanStore
 from .poses import ViewGeometry
 from .scp import DicomReceiver
@@ -63,7 +62,11 @@ class Service:
         self.metrics = Metrics()
         self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe])
         self.spool = Spool(config.spool_dir)
+        # Imported here, not at the top: `slamtka status` (the container's health check) and the
+        # other commands then start without loading rerun, highdicom and the imaging chain.
         from solver.imaging.calibration import load_calibration
+
+        from .pipeline import Pipeline
 
         self.calibration = load_calibration(config.carm.calibration)
         kinematics = CArmKinematics.from_config(config.carm.kinematics)
