@@ -22,6 +22,8 @@ from solver.simulate import SimulationConfig, simulate_case
 from solver.slam import SolverConfig, solve_joint
 
 from .bench import add_bench_parser
+from .calibrate import add_calibrate_parser
+from .sim_images import write_case_images
 from .plans import add_plan_parser
 from .replay import add_replay_parser
 from .serve import add_serve_parser
@@ -65,6 +67,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     }
     write_case(args.out, f"sim-{args.seed}", plan, case.views, case.initial, "simulated-carm",
                truth)
+    if getattr(args, "images", False):
+        write_case_images(args.out, plan, case, "simulated-carm", args.seed)
     print(f"wrote simulated case to {args.out} (true CTR {case.truth_ctr_deg:+.2f} deg, "
           f"STR {case.truth_str_deg:+.2f} deg)")
     return 0
@@ -139,6 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-rot-sd", type=float, default=0.1, help="initial rotation error SD, rad")
     p.add_argument("--init-trans-sd", type=float, default=20.0, help="initial translation error SD, mm")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--images", action="store_true",
+                   help="also render the views as DICOM X-ray frames with their true outlines")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("solve", help="measure the resection plane of a case folder")
@@ -152,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     add_bench_parser(sub)
+    add_calibrate_parser(sub)
     add_carm_sim_parser(sub)
     add_plan_parser(sub)
     add_status_parser(sub)

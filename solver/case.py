@@ -14,7 +14,6 @@ The contour document is also the format for contours drawn by hand.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,8 @@ import numpy as np
 
 from .camera import Camera
 from .geometry import Pose
+from .imaging import calibration as imaging_calibration
+from .imaging.distortion import Distortion
 from .observations import LABELS, ViewObservation
 from .plan import Plan
 from .slam import InitialGuess
@@ -52,23 +53,19 @@ def _read_json(path: Path) -> dict:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
 
 
-def calibration_document(camera: Camera, calibration_id: str, description: str) -> dict:
-    body = {"format": "slamtka-calibration/1", "id": calibration_id, "description": description,
-            "camera": camera.to_json(), "distortion": {"model": "none"}}
-    digest = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
-    return {**body, "sha256": digest}
+def calibration_document(camera: Camera, calibration_id: str, description: str,
+                         distortion: Distortion | None = None) -> dict:
+    """The versioned calibration file of a case (see solver.imaging.calibration)."""
+    return imaging_calibration.calibration_document(camera, calibration_id, description, distortion)
 
 
 def _load_calibration(path: Path) -> tuple[Camera, str]:
-    doc = _read_json(path)
-    expected = doc.get("sha256")
-    body = {k: v for k, v in doc.items() if k != "sha256"}
-    if expected != hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest():
-        raise ValueError(f"{path}: calibration checksum does not match its content")
-    if doc.get("distortion", {}).get("model") != "none":
-        raise ValueError(f"{path}: distortion model {doc.get('distortion')} is not supported "
-                         "for contour files (contours must be undistorted)")
-    return Camera.from_json(doc["camera"]), str(doc["id"])
+    """Camera and id of a case's calibration. Contours in a case folder are already
+    undistorted, so the distortion model (needed only for raw frames) is not applied here."""
+    if not path.is_file():
+        raise ValueError(f"{path}: file missing from the case folder")
+    calibration = imaging_calibration.load_calibration(path)
+    return calibration.camera, calibration.calibration_id
 
 
 def _odometry_sigma(initial_doc: dict) -> tuple[float, float] | None:

@@ -38,7 +38,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
+
+from .field import FieldError, attenuation, field_of_view, fill_holes
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]
@@ -46,7 +47,7 @@ __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manua
 _CONTOURS_FORMAT = "slamtka-contours/1"
 
 
-class ContourError(ValueError):
+class ContourError(FieldError):
     """A frame or contour document from which contours cannot be had, with the reason."""
 
 
@@ -116,67 +117,6 @@ class ExtractedContours:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
 
 
-# -- field of view and attenuation ------------------------------------------------------------
-
-def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """Circle through most of the points (RANSAC over triplets), refined by least squares.
-
-    Objects crossing the rim of the field (a pin sticking out) dent its boundary, so the
-    consensus circle, not a plain fit, is the field.
-    """
-    triplets = points[rng.integers(0, len(points), (300, 3))]
-    a, b, c = triplets[:, 0], triplets[:, 1], triplets[:, 2]
-    d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
-    ok = np.abs(d) > 1e-6
-    a, b, c, d = a[ok], b[ok], c[ok], d[ok]
-    sa, sb, sc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
-    centres = np.column_stack([
-        (sa * (b[:, 1] - c[:, 1]) + sb * (c[:, 1] - a[:, 1]) + sc * (a[:, 1] - b[:, 1])) / d,
-        (sa * (c[:, 0] - b[:, 0]) + sb * (a[:, 0] - c[:, 0]) + sc * (b[:, 0] - a[:, 0])) / d])
-    radii = np.linalg.norm(a - centres, axis=1)
-    # Score candidates on a subsample of the boundary to keep this vectorised and small.
-    sample = points[:: max(1, len(points) // 400)]
-    residual = np.abs(np.linalg.norm(sample[None] - centres[:, None], axis=2) - radii[:, None])
-    best = int(np.argmax((residual < 1.5).sum(axis=1)))
-    keep = np.abs(np.linalg.norm(points - centres[best], axis=1) - radii[best]) < 1.5
-    p = points[keep]
-    M = np.column_stack([2 * p, np.ones(len(p))])
-    sol = np.linalg.lstsq(M, (p**2).sum(axis=1), rcond=None)[0]
-    return sol[:2], float(np.sqrt(sol[2] + sol[:2] @ sol[:2]))
-
-
-def _field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float | None, float, int]:
-    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal."""
-    h, w = image.shape
-    c = max(4, min(h, w) // 64)
-    corners = np.concatenate([image[:c, :c].ravel(), image[:c, -c:].ravel(),
-                              image[-c:, :c].ravel(), image[-c:, -c:].ravel()])
-    outside = float(np.median(corners))
-    inside = float(np.median(image[h // 4: 3 * h // 4, w // 4: 3 * w // 4]))
-    sign = {"dark": 1, "bright": -1}.get(polarity, 1 if inside >= outside else -1)
-    if abs(inside - outside) < 8.0 * (np.std(corners) + 1.0):
-        # Corners carry signal: a flat-panel or cropped frame without a circular field.
-        level = float(np.min(image)) if sign > 0 else float(np.max(image))
-        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), None, level, sign
-    lit = (sign * (image.astype(np.float32) - outside) > 0.5 * abs(inside - outside)).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    region = ndimage.binary_fill_holes(labels == largest).astype(np.uint8)
-    boundary = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
-    points = np.vstack([b.reshape(-1, 2) for b in boundary]).astype(float)
-    # Drop the frame's border: the field may be cut by the frame.
-    points = points[(points[:, 0] > 1) & (points[:, 1] > 1) & (points[:, 0] < w - 2) & (points[:, 1] < h - 2)]
-    if len(points) < 50:
-        raise ContourError("the circular field of view could not be found")
-    centre, radius = _fit_circle(points, np.random.default_rng(0))
-    return centre, radius, outside, sign
-
-
-def _attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
-    signal = sign * (image.astype(np.float32) - outside)
-    return -np.log(np.maximum(signal, 1.0))
-
-
 # -- sub-pixel edges along normals ----------------------------------------------------------
 
 def _outline_with_normals(mask: np.ndarray, min_length: int) -> tuple[np.ndarray, np.ndarray]:
@@ -226,9 +166,9 @@ def _edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray
     step = 0.25
     s = np.arange(-search, search + step / 2, step)
     samples = points[:, None, :] + s[None, :, None] * normals[:, None, :]
-    coords = [samples[..., 1].ravel(), samples[..., 0].ravel()]
-    gx = ndimage.map_coordinates(grad[0], coords, order=1, mode="nearest").reshape(samples.shape[:2])
-    gy = ndimage.map_coordinates(grad[1], coords, order=1, mode="nearest").reshape(samples.shape[:2])
+    map_u, map_v = samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32)
+    gx = cv2.remap(grad[0], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    gy = cv2.remap(grad[1], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     drop = -(gx * normals[:, 0:1] + gy * normals[:, 1:2])  # positive where the image falls outwards
     peak = np.argmax(drop, axis=1)
     best = np.clip(peak, 1, len(s) - 2)
@@ -373,11 +313,17 @@ def _tissue_surface(A: np.ndarray, tissue: np.ndarray, config: ContourConfig) ->
     scale = max(small.shape)
     coef = np.linalg.lstsq(_poly_terms(us / scale - 0.5, vs / scale - 0.5, config.background_degree),
                            small[vs, us], rcond=None)[0]
-    gv, gu = np.mgrid[0:h, 0:w]
-    # Pixel (u, v) sits at ((u + 0.5) / f - 0.5) in the small image.
-    terms = _poly_terms(((gu.ravel() + 0.5) / f - 0.5) / scale - 0.5,
-                        ((gv.ravel() + 0.5) / f - 0.5) / scale - 0.5, config.background_degree)
-    return (terms @ coef).reshape(h, w)
+    gv, gu = np.mgrid[0:small.shape[0], 0:small.shape[1]]
+    surface = (_poly_terms(gu.ravel() / scale - 0.5, gv.ravel() / scale - 0.5, config.background_degree)
+               @ coef).reshape(small.shape).astype(np.float32)
+    return cv2.resize(surface, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+def _within(mask: np.ndarray, distance: float) -> np.ndarray:
+    """Pixels within ``distance`` px of a mask (a round dilation, via the distance transform)."""
+    if not mask.any():
+        return np.zeros_like(mask, bool)
+    return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3) <= distance
 
 
 def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarray,
@@ -391,8 +337,7 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarr
     """
     magnitude = np.hypot(grad[0], grad[1])
     barrier = cv2.dilate((magnitude > config.barrier_strength).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    skin = cv2.dilate(air.astype(np.uint8), cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * int(config.skin_margin_px) + 1,) * 2)) > 0
+    skin = _within(air, config.skin_margin_px)
     open_area = (valid & ~barrier & ~air).astype(np.uint8)
     count, labels = cv2.connectedComponents(open_area, connectivity=4)
     seeded = np.bincount(labels[skin & (open_area > 0)], minlength=count) > 0
@@ -402,8 +347,8 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarr
         raise ContourError("no soft tissue next to the skin is visible; cannot separate the bone")
     excess = smooth - _tissue_surface(smooth, tissue & ~skin if (tissue & ~skin).any() else tissue, config)
     sizes = np.bincount(labels.ravel(), minlength=count)
-    level = ndimage.median(excess, labels, np.arange(count))
-    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (np.asarray(level) < config.bone_threshold)
+    level = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
+    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (level < config.bone_threshold)
     enclosed_tissue[0] = False
     tissue |= enclosed_tissue[labels]
     bone = valid & ~air & ~tissue
@@ -415,11 +360,7 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarr
     big[1:] = stats[1:, cv2.CC_STAT_AREA] >= config.min_bone_area_px
     bone = big[labels]
     # Holes smaller than the minimum bone area are noise inside bone, not gaps between bones.
-    holes = ndimage.binary_fill_holes(bone) & ~bone
-    hcount, hlabels, hstats, _ = cv2.connectedComponentsWithStats(holes.astype(np.uint8), connectivity=4)
-    small_hole = np.zeros(hcount, bool)
-    small_hole[1:] = hstats[1:, cv2.CC_STAT_AREA] < config.min_bone_area_px
-    bone |= small_hole[hlabels]
+    bone = fill_holes(bone, config.min_bone_area_px)
     points, normals = _outline_with_normals(bone, 30)
     edges, normals, strength, bend = _edges_along_normals(
         grad, points, normals, config.edge_search_px, config.min_edge_strength)
@@ -453,8 +394,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     if image.ndim != 2 or min(image.shape) < 64:
         raise ContourError(f"expected a 2-D grey-scale frame of at least 64 x 64, got {image.shape}")
     h, w = image.shape
-    centre, radius, outside, sign = _field_of_view(image, config.polarity)
-    A = _attenuation(image, outside, sign)
+    centre, radius, outside, sign = field_of_view(image, config.polarity)
+    A = attenuation(image, outside, sign)
     u, v = np.meshgrid(np.arange(w), np.arange(h))
     r = np.hypot(u - centre[0], v - centre[1])
     valid = r < (radius if radius is not None else np.inf) - 2.0
@@ -474,9 +415,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     rim_ok = r < (radius if radius is not None else np.inf) - margin
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
-    near_pin = cv2.dilate(pins.astype(np.uint8), cv2.getStructuringElement(
-        cv2.MORPH_ELLIPSE, (2 * int(config.pin_exclusion_px) + 1,) * 2)) > 0
-    near_air = cv2.dilate(air.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    near_pin = _within(pins, config.pin_exclusion_px)
+    near_air = _within(air, 3.0)
     bone = _keep(bone, rim_ok & ~near_pin & ~near_air)
     pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
     diagnostics = {

@@ -45,7 +45,7 @@ __all__ = ["XRayParams", "XRayScene", "Radiograph", "render_radiograph", "render
 
 # Simplified copy used for the inner (endosteal) bone surface: it is not an observed edge.
 _INNER_SURFACE_FACES = 8000
-_TRUTH_SPACING_PX = 1.0
+_TRUTH_SPACING_PX = 0.25
 
 
 def default_distortion(camera: Camera) -> Distortion:

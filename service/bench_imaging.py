@@ -1,0 +1,219 @@
+"""``slamtka bench imaging --out DIR``: figures of the imaging chain on simulated data.
+
+- rendering: seconds per 1024 x 1024 radiograph (the first frame also builds the distortion
+  maps, which a C-arm keeps; it is reported apart);
+- calibration: simulated phantom sets (random true principal point and focal length, the
+  default intensifier distortion): focal length error (%), principal point error (px),
+  residual distortion after correction (RMS px over the field of what no pinhole explains), share of images whose grid was found;
+- contours: distances of extracted bone edge points to the true outline (median, p95, px),
+  share of the visible true outline within 2 px of an extracted point (coverage; visible:
+  inside the field margin and outside the pins' shadows), pins found and correctly
+  labelled, extraction seconds per frame;
+- end to end: frames -> contours -> undistortion -> ``solve_joint`` at initial-noise
+  levels of DESIGN.md section 5: absolute CTR/STR errors.
+
+Prints a summary and writes ``imaging.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from solver.camera import Camera
+from solver.imaging.calibration import CalibrationImage, calibrate
+from solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
+from solver.imaging.distortion import Distortion
+from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
+from solver.imaging.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
+from solver.observations import ViewObservation
+from solver.plan import Plan
+from solver.simulate import DETECTOR_FIELD_MM, SimulationConfig, default_camera, simulate_case
+from solver.slam import SolverConfig, solve_joint
+
+__all__ = ["contour_scores", "residual_distortion_px", "add_imaging_bench_parser", "run_imaging"]
+
+ROT_SD_PER_LEVEL_RAD = 0.1
+TRANS_SD_PER_LEVEL_MM = 20.0
+COVERED_PX = 2.0
+PIN_SHADOW_PX = 16.0  # true bone outline this close to a pin's outline lies in its shadow
+PIN_FOUND_PX = 2.0
+
+
+def contour_scores(radiograph: Radiograph, found: ExtractedContours,
+                   config: ContourConfig = ContourConfig()) -> dict:
+    """Bone distances and coverage, and whether both pins were found with the right labels."""
+    truth = radiograph.silhouettes
+    camera = radiograph.camera
+    bone_truth = truth["bone"][camera.in_field(truth["bone"], config.fov_margin_px)]
+    pins = np.vstack([truth["pin1"], truth["pin2"]])
+    if len(pins):
+        bone_truth = bone_truth[cKDTree(pins).query(bone_truth)[0] > PIN_SHADOW_PX]
+    scores = {"bone_points": len(found.bone), "distances": np.zeros(0), "coverage": 0.0}
+    if len(found.bone) and len(bone_truth):
+        scores["distances"] = cKDTree(bone_truth if len(bone_truth) else truth["bone"]).query(found.bone)[0]
+        scores["coverage"] = float(np.mean(cKDTree(found.bone).query(bone_truth)[0] <= COVERED_PX))
+    labelled = True
+    for own, other in (("pin1", "pin2"), ("pin2", "pin1")):
+        points = getattr(found, own)
+        if len(points) == 0 or len(truth[own]) == 0:
+            labelled = False
+            continue
+        d_own = float(np.median(cKDTree(truth[own]).query(points)[0]))
+        d_other = float(np.median(cKDTree(truth[other]).query(points)[0]))
+        labelled &= d_own <= PIN_FOUND_PX and d_own < d_other
+    scores["pins_labelled"] = bool(labelled)
+    return scores
+
+
+def residual_distortion_px(true_camera: Camera, true_distortion: Distortion,
+                           distortion: Distortion, margin_px: float = 10.0) -> float:
+    """RMS (px) of what the estimated correction leaves of the true distortion over the field.
+
+    Ideal points of the true camera are distorted by the true intensifier and corrected with
+    the estimate; what no pinhole camera explains (the residual of the best projective map
+    from the ideal to the corrected points) is the residual distortion. A principal point or
+    focal length difference is a different pinhole, reported apart.
+    """
+    u, v = np.meshgrid(np.linspace(0, true_camera.width - 1, 60), np.linspace(0, true_camera.height - 1, 60))
+    ideal = np.column_stack([u.ravel(), v.ravel()])
+    observed = true_distortion.distort(ideal)
+    inside = true_camera.in_field(observed, margin_px)
+    ideal, corrected = ideal[inside], distortion.undistort(observed[inside])
+    H, _ = cv2.findHomography(ideal, corrected, 0)
+    mapped = cv2.perspectiveTransform(ideal[None].astype(np.float64), H)[0]
+    return float(np.sqrt(np.mean(np.sum((corrected - mapped) ** 2, axis=1))))
+
+
+def _calibration_study(sets: int, images: int, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    nominal = default_camera()
+    spacing = DETECTOR_FIELD_MM / nominal.width
+    rows = []
+    for _ in range(sets):
+        f = nominal.fx * rng.uniform(0.97, 1.03)
+        true = Camera(f, f, nominal.cx + rng.uniform(-10, 10), nominal.cy + rng.uniform(-10, 10),
+                      nominal.width, nominal.height, nominal.fov_radius_px)
+        distortion = default_distortion(true)
+        phantom = simulate_phantom_images(true, distortion, PhantomSpec(), images, rng)
+        calibration, report = calibrate([CalibrationImage(f"img{i:02d}", p.image, (spacing, spacing), 1000.0)
+                                         for i, p in enumerate(phantom)])
+        c = calibration.camera
+        rows.append({
+            "focal_error_pct": 100.0 * abs(c.fx / true.fx - 1.0),
+            "principal_point_error_px": float(np.hypot(c.cx - true.cx, c.cy - true.cy)),
+            "residual_distortion_rms_px": residual_distortion_px(true, distortion, calibration.distortion),
+            "grid_found_pct": 100.0 * report["used"] / images,
+            "reprojection_rms_px": report["rms_px"],
+            "principal_point_held": report["principal_held"]})
+    return {"sets": rows, "images_per_set": images,
+            **{f"max_{k}": max(r[k] for r in rows) for k in
+               ("focal_error_pct", "principal_point_error_px", "residual_distortion_rms_px")},
+            "min_grid_found_pct": min(r["grid_found_pct"] for r in rows)}
+
+
+def run_imaging(args: argparse.Namespace) -> int:
+    args.out.mkdir(parents=True, exist_ok=True)
+    plan = Plan.phantom()
+    plan.bone_model()
+    plan.pin_model()
+    camera = default_camera()
+    params = XRayParams()
+    scene = XRayScene.from_plan(plan, params)
+    config = ContourConfig()
+    render_s, extract_s, distances, coverage, pins_ok = [], [], [], [], []
+    e2e = {level: {"ctr_abs_deg": [], "str_abs_deg": [], "refused": []} for level in args.levels}
+    for case_index in range(args.cases):
+        seed = args.seed + case_index
+        sim = simulate_case(plan, SimulationConfig(seed=seed))
+        raw = []
+        for T in sim.truth_T_cam_tibia:
+            start = time.perf_counter()
+            radiograph = render_radiograph(plan, T, sim.truth_T_tibia_pin, camera, params,
+                                           np.random.default_rng(seed), scene)
+            render_s.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            found = extract_contours(radiograph.image, config)
+            extract_s.append(time.perf_counter() - start)
+            scores = contour_scores(radiograph, found, config)
+            distances.append(scores["distances"])
+            coverage.append(scores["coverage"])
+            pins_ok.append(scores["pins_labelled"])
+            raw.append((radiograph, found))
+        for level in args.levels:
+            case = simulate_case(plan, SimulationConfig(seed=seed, init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
+                                                        init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level))
+            views = [ViewObservation(v.view_id, camera, {label: r.distortion.undistort(points) if len(points)
+                                                         else points for label, points in f.as_dict().items()})
+                     for v, (r, f) in zip(case.views, raw)]
+            outcome = solve_joint(plan, views, case.initial, SolverConfig())
+            if outcome.status == "measured":
+                e2e[level]["ctr_abs_deg"].append(abs(float(np.degrees(outcome.plane.ctr)) - case.truth_ctr_deg))
+                e2e[level]["str_abs_deg"].append(abs(float(np.degrees(outcome.plane.str_)) - case.truth_str_deg))
+            else:
+                e2e[level]["refused"].append(outcome.reason)
+        print(f"  case {case_index + 1}/{args.cases} done", flush=True)
+    all_d = np.concatenate(distances) if distances else np.zeros(0)
+    results = {
+        "rendering": {"frames": len(render_s), "first_s": render_s[0] if render_s else None,
+                      "median_s": float(np.median(render_s[1:] or render_s)),
+                      "max_s": float(np.max(render_s[1:] or render_s))},
+        "contours": {"frames": len(coverage), "median_px": float(np.median(all_d)),
+                     "p95_px": float(np.percentile(all_d, 95)),
+                     "coverage_median": float(np.median(coverage)), "coverage_min": float(np.min(coverage)),
+                     "pins_found_labelled_pct": 100.0 * float(np.mean(pins_ok)),
+                     "extraction_median_s": float(np.median(extract_s)), "extraction_max_s": float(np.max(extract_s))},
+        "calibration": _calibration_study(args.calibration_sets, args.calibration_images, args.seed),
+        "end_to_end": {str(level): {
+            "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
+            "cases": args.cases, "measured": len(r["ctr_abs_deg"]),
+            "median_ctr_abs_deg": float(np.median(r["ctr_abs_deg"])) if r["ctr_abs_deg"] else None,
+            "median_str_abs_deg": float(np.median(r["str_abs_deg"])) if r["str_abs_deg"] else None,
+            "p95_ctr_abs_deg": float(np.percentile(r["ctr_abs_deg"], 95)) if r["ctr_abs_deg"] else None,
+            "p95_str_abs_deg": float(np.percentile(r["str_abs_deg"], 95)) if r["str_abs_deg"] else None,
+            "refusals": r["refused"]} for level, r in e2e.items()},
+    }
+    (args.out / "imaging.json").write_text(json.dumps(results, indent=2))
+    print(_summary(results))
+    return 0
+
+
+def _summary(r: dict) -> str:
+    rd, c, cal = r["rendering"], r["contours"], r["calibration"]
+    lines = [
+        f"rendering: median {rd['median_s']:.2f} s, max {rd['max_s']:.2f} s per 1024x1024 frame "
+        f"(first frame {rd['first_s']:.2f} s incl. distortion maps), {rd['frames']} frames",
+        f"calibration: {len(cal['sets'])} sets x {cal['images_per_set']} images: focal error max "
+        f"{cal['max_focal_error_pct']:.3f}%, principal point error max {cal['max_principal_point_error_px']:.2f} px, "
+        f"residual distortion max {cal['max_residual_distortion_rms_px']:.3f} px RMS, grid found min "
+        f"{cal['min_grid_found_pct']:.0f}%",
+        f"contours: {c['frames']} frames: bone edge distance median {c['median_px']:.2f} px, p95 "
+        f"{c['p95_px']:.2f} px, coverage median {100 * c['coverage_median']:.1f}% (min "
+        f"{100 * c['coverage_min']:.1f}%), pins found and labelled {c['pins_found_labelled_pct']:.0f}%, "
+        f"extraction median {c['extraction_median_s']:.2f} s (max {c['extraction_max_s']:.2f} s)",
+    ]
+    for level, e in r["end_to_end"].items():
+        fmt = (lambda x: "n/a" if x is None else f"{x:.3f}")
+        lines.append(f"end to end, level {level} (rot SD {e['rot_sd_rad']:.1f} rad, trans SD "
+                     f"{e['trans_sd_mm']:.0f} mm): {e['measured']}/{e['cases']} measured, median |CTR| "
+                     f"{fmt(e['median_ctr_abs_deg'])} deg, median |STR| {fmt(e['median_str_abs_deg'])} deg "
+                     f"(p95 {fmt(e['p95_ctr_abs_deg'])} / {fmt(e['p95_str_abs_deg'])})")
+    return "\n".join(lines)
+
+
+def add_imaging_bench_parser(kinds: argparse._SubParsersAction) -> None:
+    p = kinds.add_parser("imaging", help="rendering, calibration, contour and end-to-end figures")
+    p.add_argument("--cases", type=int, default=10, help="simulated cases (two frames each)")
+    p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=[1, 2],
+                   help="initial-noise levels for the end-to-end solves")
+    p.add_argument("--calibration-sets", type=int, default=3)
+    p.add_argument("--calibration-images", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True)
+    p.set_defaults(func=run_imaging)

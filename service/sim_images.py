@@ -1,0 +1,77 @@
+"""Rendered X-ray frames for a simulated case folder (``slamtka simulate --images``).
+
+Adds to the folder written by ``solver.case.write_case``:
+
+    frames/VIEW.dcm            each view as an XA DICOM frame from the simulated C-arm
+    truth_silhouettes.json     the true outlines per view and label, raw (distorted) pixels
+    calibration.json           rewritten with the intensifier's distortion and pixel spacing
+
+and names them in ``case.json`` (``frames``, ``truth_silhouettes``). The case's
+``contours.json`` is unchanged: the frames are what a C-arm would send for the same poses.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+from pydicom.uid import generate_uid
+
+from solver.imaging.calibration import write_calibration
+from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from solver.plan import Plan
+from solver.simulate import (
+    DETECTOR_FIELD_MM,
+    SOURCE_TO_DETECTOR_MM,
+    SOURCE_TO_ISOCENTRE_MM,
+    SimulatedCase,
+)
+
+from .frames import Frame, encode_frame
+
+__all__ = ["write_case_images"]
+
+
+def write_case_images(folder: Path, plan: Plan, case: SimulatedCase, calibration_id: str,
+                      seed: int, params: XRayParams = XRayParams()) -> list[Path]:
+    """Render every view of ``case``, write the frames and their truth; returns the frame paths."""
+    folder = Path(folder)
+    camera = case.views[0].camera
+    distortion = params.distortion or default_distortion(camera)
+    params = replace(params, distortion=distortion)
+    scene = XRayScene.from_plan(plan, params)
+    rng = np.random.default_rng(seed)
+    spacing = DETECTOR_FIELD_MM / camera.width
+    study, series = generate_uid(), generate_uid()
+    start = datetime.now(timezone.utc)
+    (folder / "frames").mkdir(parents=True, exist_ok=True)
+    paths, truth = [], {}
+    for k, (view, T, angle) in enumerate(zip(case.views, case.truth_T_cam_tibia,
+                                             case.config.view_angles_deg)):
+        radiograph = render_radiograph(plan, T, case.truth_T_tibia_pin, camera, params, rng, scene)
+        frame = Frame(radiograph.image, (spacing, spacing), primary_angle_deg=float(angle),
+                      secondary_angle_deg=0.0, sid_mm=SOURCE_TO_DETECTOR_MM,
+                      sod_mm=SOURCE_TO_ISOCENTRE_MM, acquisition_datetime=start + timedelta(seconds=20 * k),
+                      patient_id=plan.patient_id, patient_name=plan.patient_id,
+                      study_uid=study, series_uid=series,
+                      laterality="R" if plan.side == "right" else "L",
+                      bits_stored=params.bits_stored, instance_number=k + 1)
+        path = folder / "frames" / f"{view.view_id}.dcm"
+        encode_frame(frame).save_as(path, enforce_file_format=True)
+        paths.append(path)
+        truth[view.view_id] = {label: np.round(points, 3).tolist()
+                               for label, points in radiograph.silhouettes.items()}
+    (folder / "truth_silhouettes.json").write_text(json.dumps(
+        {"format": "slamtka-contours/1", "units": "px", "coordinates": "raw",
+         "views": [{"view_id": v, **labels} for v, labels in truth.items()]}))
+    write_calibration(folder / "calibration.json", camera, distortion, "simulated C-arm with "
+                      "image-intensifier distortion", calibration_id, (spacing, spacing))
+    manifest_path = folder / "case.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["frames"] = {v.view_id: f"frames/{v.view_id}.dcm" for v in case.views}
+    manifest["truth_silhouettes"] = "truth_silhouettes.json"
+    manifest_path.write_text(json.dumps(manifest, indent=2))
+    return paths

@@ -1,0 +1,234 @@
+"""Imaging chain: rasterised path lengths, distortion, radiographs, contours, calibration."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pydicom
+import pytest
+import trimesh
+
+from service.bench_imaging import contour_scores, residual_distortion_px
+from service.cli import main
+from solver.camera import Camera
+from solver.imaging.calibration import (
+    CalibrationError,
+    CalibrationImage,
+    CalibrationOptions,
+    calibrate,
+    load_calibration,
+    match_grid,
+    write_calibration,
+)
+from solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
+from solver.imaging.distortion import Distortion
+from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
+from solver.imaging.raster import path_lengths
+from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from solver.simulate import SimulationConfig, default_camera, simulate_case
+
+
+@pytest.fixture(scope="module")
+def scene(phantom_plan):
+    return XRayScene.from_plan(phantom_plan)
+
+
+@pytest.fixture(scope="module")
+def radiographs(phantom_plan, scene):
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
+    return case, [render_radiograph(phantom_plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(),
+                                    np.random.default_rng(k), scene)
+                  for k, T in enumerate(case.truth_T_cam_tibia)]
+
+
+def test_path_lengths_of_a_sphere_match_the_chord_formula():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=20.0)
+    sphere.apply_translation([2.0, -3.0, 600.0])
+    f, c = 1500.0, 63.5
+    L = path_lengths(sphere.vertices, sphere.faces, f, f, c, c, 128, 128)
+    v, u = np.mgrid[0:128, 0:128]
+    d = np.stack([(u - c) / f, (v - c) / f, np.ones_like(u, float)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    centre = np.array([2.0, -3.0, 600.0])
+    along = d @ centre
+    miss2 = centre @ centre - along**2
+    chord = 2 * np.sqrt(np.clip(400.0 - miss2, 0, None))
+    inside = miss2 < 19.0**2  # away from the faceted rim
+    assert np.abs(L - chord)[inside].max() < 0.1
+    assert L.min() >= 0 and L[miss2 > 21.0**2].max() == 0.0
+
+
+def test_distortion_inverse_is_exact_and_parameters_are_checked():
+    dist = Distortion(500.0, 520.0, 512.0, 0.05, 0.01, 0.008, -0.003)
+    uv = np.random.default_rng(0).uniform(0, 1024, (500, 2))
+    assert np.abs(dist.undistort(dist.distort(uv)) - uv).max() < 1e-6
+    rim = np.array([[500.0 + 512.0, 520.0]])
+    assert np.linalg.norm(dist.distort(rim)[0] - [500.0, 520.0]) == pytest.approx(512.0 * 1.06)  # pincushion
+    assert Distortion.from_json(dist.to_json()) == dist
+    with pytest.raises(ValueError, match="folds"):
+        Distortion(0, 0, 100.0, k1=-0.5)
+    with pytest.raises(ValueError, match="model"):
+        Distortion.from_json({"model": "brown"})
+
+
+def test_radiograph_is_12_bit_with_dark_steel_and_a_circular_field(radiographs):
+    _, frames = radiographs
+    r = frames[0]
+    assert r.image.dtype == np.uint16 and r.image.max() < 4096
+    assert r.image[0, 0] == r.image[0, -1] == 30  # outside the intensifier's circle
+    pins = np.round(r.silhouettes["pin1"]).astype(int)
+    centre = pins.mean(axis=0).astype(int)
+    assert r.image[centre[1], centre[0]] < np.median(r.image[300:700, 300:700])
+    assert set(r.silhouettes) == {"bone", "pin1", "pin2"} and len(r.silhouettes["bone"]) > 1000
+
+
+def test_contours_meet_the_figures_and_label_pins(radiographs):
+    _, frames = radiographs
+    for r in frames:
+        found = extract_contours(r.image)
+        s = contour_scores(r, found)
+        assert np.median(s["distances"]) <= 0.5
+        assert np.percentile(s["distances"], 95) <= 2.0
+        assert s["coverage"] >= 0.85
+        assert s["pins_labelled"]
+        assert found.diagnostics["polarity"] == "dark"
+
+
+def test_contours_of_an_inverted_frame_and_pin_labels_from_the_expected_positions(radiographs):
+    _, frames = radiographs
+    r = frames[1]
+    inverted = (4095 - r.image).astype(np.uint16)
+    found = extract_contours(inverted)
+    assert found.diagnostics["polarity"] == "bright"
+    assert contour_scores(r, found)["pins_labelled"]
+    centres = np.array([r.silhouettes["pin2"].mean(0), r.silhouettes["pin1"].mean(0)])
+    swapped = extract_contours(r.image, ContourConfig(), expected_pins=centres)
+    nearest = np.linalg.norm(swapped.pin1[:, None] - r.silhouettes["pin2"][None, ::4], axis=2).min(axis=1)
+    assert np.median(nearest) < 2.0
+
+
+def test_contour_config_loads_from_toml_and_refuses_unknown_keys(tmp_path):
+    good = tmp_path / "site.toml"
+    good.write_text("[contours]\nsmoothing_px = 1.5\npin_order = 'right_to_left'\n")
+    assert ContourConfig.load(good) == ContourConfig(smoothing_px=1.5, pin_order="right_to_left")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"smothing_px": 1}))
+    with pytest.raises(ValueError, match="unknown contour settings"):
+        ContourConfig.load(bad)
+    with pytest.raises(ContourError, match="2-D"):
+        extract_contours(np.zeros((10, 10, 3), np.uint16))
+
+
+def test_manual_contours_are_read_with_their_coordinates(tmp_path):
+    path = tmp_path / "drawn.json"
+    path.write_text(json.dumps({"format": "slamtka-contours/1", "units": "px", "coordinates": "raw",
+                                "views": [{"view_id": "1.2.3", "tibia": [[1, 2], [3, 4]],
+                                           "pin1": [[5, 6]], "pin2": []}]}))
+    coordinates, views = load_manual_contours(path)
+    assert coordinates == "raw" and views["1.2.3"].bone.shape == (2, 2) and len(views["1.2.3"].pin2) == 0
+    path.write_text(json.dumps({"format": "slamtka-contours/1", "views": [{"view_id": "a", "pin1": []}]}))
+    with pytest.raises(ContourError, match="exactly one of 'bone' or 'tibia'"):
+        load_manual_contours(path)
+
+
+@pytest.fixture(scope="module")
+def phantom_set():
+    nominal = default_camera()
+    true = Camera(nominal.fx * 1.01, nominal.fx * 1.01, nominal.cx + 6.0, nominal.cy - 4.0,
+                  nominal.width, nominal.height, nominal.fov_radius_px)
+    distortion = default_distortion(true)
+    images = simulate_phantom_images(true, distortion, PhantomSpec(), 9, np.random.default_rng(5))
+    return true, distortion, images
+
+
+def test_calibration_recovers_intrinsics_and_distortion(phantom_set, tmp_path):
+    true, distortion, images = phantom_set
+    spacing = (230 / 1024, 230 / 1024)
+    calib, report = calibrate([CalibrationImage(f"im{i}", p.image, spacing, 1000.0) for i, p in enumerate(images)])
+    assert abs(calib.camera.fx / true.fx - 1) < 0.005
+    assert math.hypot(calib.camera.cx - true.cx, calib.camera.cy - true.cy) < 3.0
+    assert residual_distortion_px(true, distortion, calib.distortion) <= 0.3
+    assert report["used"] + len(report["rejected"]) == len(images) and report["used"] >= len(images) - 1
+    assert all(r["image"].startswith("im") and r["reason"] for r in report["rejected"])
+    assert report["rms_px"] < 0.2
+    path = tmp_path / "carm.json"
+    path.write_text(json.dumps(calib.document()))
+    loaded = load_calibration(path)
+    assert loaded.camera == calib.camera and loaded.sha256 == calib.sha256
+    raw = np.array([[100.0, 900.0], [512.0, 512.0]])
+    assert np.allclose(loaded.distort_points(loaded.undistort_points(raw)), raw, atol=1e-6)
+    assert loaded.check_frame(1024, 1024, spacing) is None
+    assert "1000x1024" in loaded.check_frame(1000, 1024, spacing)
+    assert "pixel spacing" in loaded.check_frame(1024, 1024, (0.3, 0.3))
+    doc = json.loads(path.read_text())
+    doc["camera"]["fx"] += 1
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationError, match="checksum"):
+        load_calibration(path)
+
+
+def test_bad_calibration_sets_are_refused(phantom_set):
+    _, _, images = phantom_set
+    spacing = (0.2246, 0.2246)
+    blank = np.full((1024, 1024), 2000, np.uint16)
+    few = [CalibrationImage(f"im{i}", p.image, spacing) for i, p in enumerate(images[:4])]
+    with pytest.raises(CalibrationError, match="only 4 usable images, need 6.*blank.dcm: only 0 balls"):
+        calibrate(few + [CalibrationImage("blank.dcm", blank, spacing)], options=CalibrationOptions(min_images=6))
+    with pytest.raises(CalibrationError, match="different sizes"):
+        calibrate(few + [CalibrationImage("small", blank[:512], spacing)])
+    with pytest.raises(CalibrationError, match="different pixel spacings"):
+        calibrate(few + [CalibrationImage("other", images[5].image, (0.3, 0.3))])
+    flat_camera = default_camera()
+    flat = []
+    rng = np.random.default_rng(1)
+    for i in range(6):
+        one = simulate_phantom_images(flat_camera, default_distortion(flat_camera), PhantomSpec(), 1, rng,
+                                      max_tilt_deg=5.5)
+        flat.append(CalibrationImage(f"flat{i}", one[0].image, spacing))
+    with pytest.raises(CalibrationError, match="fronto-parallel"):
+        calibrate(flat)
+
+
+def test_grid_matching_survives_missing_balls_and_refuses_strays():
+    spec = PhantomSpec()
+    points = spec.points()[:, :2] * 7.0 + 500.0
+    keep = np.ones(25, bool)
+    keep[[0, 7, 13, 24]] = False
+    index, grid = match_grid(points[keep], 5, 5, 12)
+    assert len(index) == 21 and grid.max() <= 4
+    stray = np.vstack([points, [[points[:, 0].max() + 175.0, points[:, 1].min()]]])
+    with pytest.raises(CalibrationError, match="span"):
+        match_grid(stray, 5, 5, 12)
+
+
+def test_simulate_with_images_and_calibrate_command(tmp_path, phantom_set):
+    case = tmp_path / "case"
+    assert main(["simulate", "--out", str(case), "--images", "--seed", "3"]) == 0
+    manifest = json.loads((case / "case.json").read_text())
+    frame = pydicom.dcmread(case / manifest["frames"]["view1"])
+    assert frame.Modality == "XA" and float(frame.DistanceSourceToDetector) == 1000.0
+    truth = json.loads((case / "truth_silhouettes.json").read_text())
+    assert {v["view_id"] for v in truth["views"]} == {"view1", "view2"}
+    assert load_calibration(case / "calibration.json").distortion is not None
+    # The calibrate command on DICOM phantom frames.
+    from service.frames import Frame, encode_frame
+    _, _, images = phantom_set
+    paths = []
+    for i, p in enumerate(images):
+        path = tmp_path / f"phantom{i}.dcm"
+        encode_frame(Frame(p.image, (230 / 1024, 230 / 1024), sid_mm=1000.0, bits_stored=12)).save_as(
+            path, enforce_file_format=True)
+        paths.append(str(path))
+    out = tmp_path / "carm.json"
+    assert main(["calibrate", *paths, "--grid", "5x5", "--pitch", "25", "--out", str(out)]) == 0
+    assert load_calibration(out).calibration_id == "carm"
+    assert main(["calibrate", *paths[:3], "--out", str(out)]) == 2
+
+
+def test_write_calibration_round_trips(tmp_path):
+    camera = default_camera()
+    written = write_calibration(tmp_path / "c.json", camera, None, "flat panel", "fp-1")
+    assert written.distortion is None and written.calibration_id == "fp-1"
+    assert np.array_equal(written.undistort_points(np.array([[1.0, 2.0]])), [[1.0, 2.0]])
