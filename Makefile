@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/slamtka demo
+	$(BIN)/slamtka theatre
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
