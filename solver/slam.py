@@ -126,7 +126,7 @@ def seat_on_rays(
     T_body_cam = T_cam_body.inverse()
     samples = (rays[:, None, :] * z[None, :, None]).reshape(-1, 3)
     d = model.sdf.query(T_body_cam.apply(samples))[0].reshape(len(pixels), len(z))
-    best = np.clip(np.argmin(np.abs(d), axis=1), 1, len(z) - 2)
+    best = np.clip(np.argmin(d, axis=1), 1, len(z) - 2)
     # Near a grazing point the distance along the ray is a parabola: refine to its vertex.
     rows = np.arange(len(pixels))
     d_minus, d_0, d_plus = d[rows, best - 1], d[rows, best], d[rows, best + 1]
@@ -181,7 +181,7 @@ class JointProblem:
             current = poses[self.body_index(label)]
             sightings = [PinSighting(view.camera, poses[k], self.pixels[k, label])
                          for k, view in enumerate(self.views)]
-            pins.append(triangulate_pin(sightings, current) or current)
+            pins.append(triangulate_pin(sightings, current, self.plan.pin_length()) or current)
         return tuple(pins)
 
     def seated_points(self, poses: tuple[Pose, ...]) -> tuple[np.ndarray, dict]:

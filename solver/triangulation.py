@@ -1,24 +1,30 @@
 """Closed-form starting pose of a pin from its contours in two or more views.
 
-A pin is a thin straight rod: in each view its contour pixels lie along one image line, and
-that line back-projects to a plane through the X-ray source that contains the pin's axis.
-The planes of two views meet in the axis; the trocar tip is the end of the pin's pixels
-nearest the tip side. This replaces the planned pin pose (which may be tens of millimetres
-off) before the silhouette optimisation, so the pins start next to where they are seen.
+A pin is a thin straight rod: in each view its contour pixels lie along one image segment.
+The two ends of that segment (the trocar tip and the pin's back end) are seen in every view,
+so each end is triangulated from its rays, and the pin runs from one to the other. This is
+well posed even when the back-projected planes of the views nearly coincide (pins running
+front to back, seen from both sides of antero-posterior, lie close to both planes), where
+intersecting the planes would amplify small view errors into degrees of axis error. It
+replaces the planned pin pose (which may be tens of millimetres off) before the silhouette
+optimisation, so the pins start next to where they are seen.
 """
 
 from __future__ import annotations
+
+from itertools import product
 
 import numpy as np
 
 from .camera import Camera
 from .geometry import Pose
 
-__all__ = ["PinSighting", "triangulate_pin"]
+__all__ = ["PinSighting", "triangulate_pin", "triangulate_rays"]
 
-# Below this angle between two back-projected planes the axis direction across the planes is
-# not determined by the contours; the prior direction's component is kept there.
-_MIN_PLANE_ANGLE_RAD = np.radians(3.0)
+# Ends of the pixels' spread along the segment (percentiles), robust to stray contour pixels.
+_END_PERCENTILES = (0.5, 99.5)
+# Millimetres of meeting gap worth one millimetre of length discrepancy, when pairing ends.
+_LENGTH_WEIGHT = 0.1
 
 
 class PinSighting:
@@ -31,59 +37,62 @@ class PinSighting:
         """X-ray source position in the tibia frame."""
         return self.T_cam_tibia.inverse().t
 
-    def rays(self) -> np.ndarray:
-        """Unit ray directions of the pixels, in the tibia frame."""
-        return self.T_cam_tibia.inverse().rotate(self.camera.rays(self.pixels))
-
-    def plane_normal(self) -> np.ndarray:
-        """Unit normal (tibia frame) of the plane through the source and the pin's image line."""
-        centred = self.pixels - self.pixels.mean(axis=0)
-        direction = np.linalg.svd(centred, full_matrices=False)[2][0]
-        ends = self.pixels.mean(axis=0) + np.outer([-50.0, 50.0], direction)
-        r = self.camera.rays(ends)
-        normal_cam = np.cross(r[0], r[1])
-        return self.T_cam_tibia.inverse().rotate(normal_cam / np.linalg.norm(normal_cam))
+    def end_rays(self) -> np.ndarray:
+        """Unit rays (2, 3), tibia frame, through the two ends of the pin's image segment."""
+        centre = self.pixels.mean(axis=0)
+        direction = np.linalg.svd(self.pixels - centre, full_matrices=False)[2][0]
+        along = (self.pixels - centre) @ direction
+        ends = centre + np.outer(np.percentile(along, _END_PERCENTILES), direction)
+        return self.T_cam_tibia.inverse().rotate(self.camera.rays(ends))
 
 
-def _axis_direction(normals: np.ndarray, prior: np.ndarray) -> np.ndarray:
-    """Direction orthogonal to every plane normal, on the prior's side; where the planes are
-    nearly parallel, the prior's component across them is kept."""
-    _, s, vt = np.linalg.svd(normals)
-    if len(s) >= 2 and s[1] / s[0] > np.sin(_MIN_PLANE_ANGLE_RAD):
-        d = vt[2]
-    else:
-        n = vt[0]
-        d = prior - np.dot(prior, n) * n
-    d = d / np.linalg.norm(d)
-    return d if np.dot(d, prior) >= 0 else -d
+def triangulate_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, float]:
+    """Point nearest to all rays (least squares) and its RMS distance to them, mm."""
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    across = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projectors across each ray
+    point = np.linalg.solve(across.sum(axis=0), np.einsum("nij,nj->i", across, origins))
+    gaps = np.einsum("nij,nj->ni", across, point - origins)
+    return point, float(np.sqrt(np.mean(np.sum(gaps**2, axis=1))))
 
 
-def triangulate_pin(sightings: list[PinSighting], prior: Pose) -> Pose | None:
+def triangulate_pin(sightings: list[PinSighting], prior: Pose,
+                    length_mm: float | None = None) -> Pose | None:
     """Pin pose (+z along the axis from the tip, tip at the origin) seen in ``sightings``;
-    ``prior`` (the planned pose) decides which way the pin points and its roll. None if the
-    pin is seen in fewer than two views."""
+    ``prior`` (the current or planned pose) decides which end is the tip and the roll;
+    ``length_mm``, the pin model's length, helps to pair the segment ends across views.
+    None if the pin is seen in fewer than two views."""
     sightings = [s for s in sightings if len(s.pixels) >= 3]
     if len(sightings) < 2:
         return None
-    normals = np.array([s.plane_normal() for s in sightings])
-    offsets = np.array([np.dot(n, s.source()) for n, s in zip(normals, sightings)])
-    d = _axis_direction(normals, prior.R[:, 2])
-    # The axis point nearest the prior tip that lies in every plane (least squares).
-    through = prior.t + np.linalg.pinv(normals) @ (offsets - normals @ prior.t)
-    through -= np.dot(through - prior.t, d) * d
+    sources = np.array([s.source() for s in sightings])
+    end_rays = [s.end_rays() for s in sightings]
+    # Which end of each view's segment is which is not known. A pin running front to back
+    # lies close to the epipolar plane of views on both sides of AP, so the wrong pairing
+    # still nearly meets (a fraction of a millimetre): the pairing is chosen by how well its
+    # rays meet and, above all, by how close the triangulated pin is to the model's length.
+    best = None
+    for flips in product((0, 1), repeat=len(sightings) - 1):
+        order = (0,) + flips
+        ends = []
+        for end in (0, 1):
+            rays = np.array([r[end ^ o] for r, o in zip(end_rays, order)])
+            ends.append(triangulate_rays(sources, rays))
+        score = ends[0][1] + ends[1][1]
+        if length_mm is not None:
+            score += _LENGTH_WEIGHT * abs(np.linalg.norm(ends[1][0] - ends[0][0]) - length_mm)
+        if best is None or score < best[0]:
+            best = (score, ends[0][0], ends[1][0])
+    _, a, b = best
+    axis = b - a
+    if np.linalg.norm(axis) < 1e-6:
+        return None
+    axis /= np.linalg.norm(axis)
+    tip = a
+    if np.dot(axis, prior.R[:, 2]) < 0:
+        axis, tip = -axis, b
 
-    # Each pixel's ray passes closest to the axis at parameter s along it; the tip is the
-    # smallest s seen (a robust low percentile against contour noise).
-    params = []
-    for s in sightings:
-        rays, w0 = s.rays(), s.source() - through
-        b = rays @ d
-        denom = np.maximum(1.0 - b**2, 1e-9)
-        params.append((w0 @ d - b * (rays @ w0)) / denom)
-    tip_s = np.percentile(np.concatenate(params), 0.5)
-
-    x = prior.R[:, 0] - np.dot(prior.R[:, 0], d) * d
+    x = prior.R[:, 0] - np.dot(prior.R[:, 0], axis) * axis
     if np.linalg.norm(x) < 1e-6:
-        x = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
+        x = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
     x /= np.linalg.norm(x)
-    return Pose(np.column_stack([x, np.cross(d, x), d]), through + tip_s * d)
+    return Pose(np.column_stack([x, np.cross(axis, x), axis]), tip)

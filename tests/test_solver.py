@@ -149,6 +149,21 @@ def test_pins_triangulate_from_their_contours(real_plan):
         assert np.linalg.norm(found.t - truth.t) < 4.0
 
 
+def test_pin_triangulation_tolerates_view_errors_near_the_epipolar_plane(real_plan):
+    """Pins run front to back, close to the epipolar plane of views at +-30 deg about AP:
+    intersecting back-projected planes turns a 1.5 deg view error into tens of degrees,
+    triangulating the segment ends (paired by the pin's length) does not."""
+    case = simulate_case(real_plan, SimulationConfig(seed=2))
+    problem = JointProblem(real_plan, case.views, SolverConfig())
+    knee = real_plan.landmarks.T_tibia_anat()
+    about_knee = knee @ Pose.identity().retract([0.0, 0.0, 2.0, np.radians(1.5), 0.0, np.radians(1.5)]) @ knee.inverse()
+    views = (case.truth_T_cam_tibia[0], case.truth_T_cam_tibia[1] @ about_knee)
+    pins = problem.triangulated_pins(views + tuple(case.initial.T_tibia_pin))
+    for found, truth in zip(pins, case.truth_T_tibia_pin):
+        assert np.degrees(np.arccos(found.R[:, 2] @ truth.R[:, 2])) < 4.0
+        assert np.linalg.norm(found.t - truth.t) < 5.0
+
+
 def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     case = simulate_case(real_plan, SimulationConfig(seed=5))
     problem = JointProblem(real_plan, case.views, SolverConfig())
