@@ -22,7 +22,7 @@ from service.bench_imaging import add_imaging_bench_parser
 from service.bench_service import add_service_bench_parser
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import SolverConfig, solve_joint
+from solver.slam import METHODS, SolverConfig, solve_joint
 
 ROT_SD_PER_LEVEL_RAD = 0.1
 TRANS_SD_PER_LEVEL_MM = 20.0
@@ -38,17 +38,17 @@ def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None
     _worker_plan.pin_model()
 
 
-def _run_one(job: tuple[int, int, float]) -> dict:
-    level, seed, noise_px = job
+def _run_one(job: tuple[str, int, int, float]) -> dict:
+    method, level, seed, noise_px = job
     plan = _worker_plan
     config = SimulationConfig(noise_px=noise_px, seed=seed,
                               init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
                               init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level)
     case = simulate_case(plan, config)
     start = time.perf_counter()
-    outcome = solve_joint(plan, case.views, case.initial, SolverConfig())
+    outcome = solve_joint(plan, case.views, case.initial, SolverConfig(method=method))
     seconds = time.perf_counter() - start
-    row = {"level": level, "seed": seed, "time_s": seconds, "iterations": outcome.iterations,
+    row = {"method": method, "level": level, "seed": seed, "time_s": seconds, "iterations": outcome.iterations,
            "status": outcome.status, "reason": outcome.reason,
            "ctr_abs_deg": None, "str_abs_deg": None, "ctr_sigma_deg": None, "str_sigma_deg": None}
     if outcome.status == "measured":
@@ -106,25 +106,30 @@ def _plot(results: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def _summary(method: str, level: int, rows: list[dict]) -> dict:
+    """One method at one level: per-run figures in the order of the seeds."""
+    return {
+        "method": method, "level": level,
+        "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
+        "runs": len(rows), "converged": sum(r["status"] == "measured" for r in rows),
+        **{key: [r[key] for r in rows] for key in
+           ("ctr_abs_deg", "str_abs_deg", "ctr_sigma_deg", "str_sigma_deg", "time_s", "iterations")},
+        "refusals": [r["reason"] for r in rows if r["status"] != "measured"],
+    }
+
+
 def run_accuracy(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(level, args.seed + 1000 * level + run, args.noise_px)
-            for level in args.levels for run in range(args.runs)]
+    # Every method sees the same simulated cases (same seeds) at each level.
+    jobs = [(method, level, args.seed + 1000 * level + run, args.noise_px)
+            for method in args.methods for level in args.levels for run in range(args.runs)]
     with ProcessPoolExecutor(args.workers, initializer=_init_worker,
                              initargs=(args.tibia, args.fibula, args.landmarks)) as pool:
         rows = list(pool.map(_run_one, jobs))
-    results = []
-    for level in args.levels:
-        mine = [r for r in rows if r["level"] == level]
-        results.append({
-            "method": "slam", "level": level,
-            "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
-            "runs": len(mine), "converged": sum(r["status"] == "measured" for r in mine),
-            **{key: [r[key] for r in mine] for key in
-               ("ctr_abs_deg", "str_abs_deg", "ctr_sigma_deg", "str_sigma_deg", "time_s", "iterations")},
-            "refusals": [r["reason"] for r in mine if r["status"] != "measured"],
-        })
-    protocol = {"noise_px": args.noise_px, "runs_per_level": args.runs, "levels": list(args.levels),
+    results = [_summary(method, level, [r for r in rows if r["level"] == level and r["method"] == method])
+               for method in args.methods for level in args.levels]
+    protocol = {"methods": list(args.methods), "noise_px": args.noise_px,
+                "runs_per_level": args.runs, "levels": list(args.levels),
                 "rot_sd_per_level_rad": ROT_SD_PER_LEVEL_RAD,
                 "trans_sd_per_level_mm": TRANS_SD_PER_LEVEL_MM,
                 "model": "phantom" if args.tibia is None else str(args.tibia), "seed": args.seed}
@@ -137,12 +142,22 @@ def run_accuracy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _methods(text: str) -> list[str]:
+    names = list(METHODS) if text == "all" else [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    return names
+
+
 def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print figures")
     kinds = bench.add_subparsers(dest="bench", required=True)
     p = kinds.add_parser("accuracy", help="the simulation study of DESIGN.md section 5")
     p.add_argument("--runs", type=int, default=10)
     p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=[1, 2, 3, 4, 5])
+    p.add_argument("--methods", type=_methods, default=["slam"],
+                   help=f"comma-separated, or 'all': {', '.join(METHODS)}")
     p.add_argument("--noise-px", type=float, default=2.0)
     p.add_argument("--tibia", type=Path)
     p.add_argument("--fibula", type=Path)

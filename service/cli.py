@@ -19,7 +19,7 @@ from solver.case import load_case, write_case
 from solver.plan import Plan
 from solver.result import result_document
 from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import SolverConfig, solve_joint
+from solver.slam import METHODS, SolverConfig, solve_joint
 
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser
@@ -107,8 +107,9 @@ def _truth_line(folder: Path, doc: dict) -> str | None:
 
 def cmd_solve(args: argparse.Namespace) -> int:
     case = load_case(args.case_dir)
-    outcome = solve_joint(case.plan, case.views, case.initial, SolverConfig())
-    doc = result_document(case.case_id, outcome, case.plan, case.views, case.calibration_id, "slam")
+    outcome = solve_joint(case.plan, case.views, case.initial, SolverConfig(method=args.method))
+    doc = result_document(case.case_id, outcome, case.plan, case.views, case.calibration_id,
+                          args.method)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=2))
@@ -126,7 +127,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                              noise_px=2.0, seed=args.seed, init_rot_sd=0.1, init_trans_sd=20.0,
                              out=folder)
     cmd_simulate(sim)
-    return cmd_solve(argparse.Namespace(case_dir=folder, json=folder / "result.json"))
+    return cmd_solve(argparse.Namespace(case_dir=folder, json=folder / "result.json", method="slam"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -150,6 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("solve", help="measure the resection plane of a case folder")
     p.add_argument("case_dir", type=Path)
     p.add_argument("--json", type=Path, help="write the result document here")
+    p.add_argument("--method", choices=METHODS, default="slam",
+                   help="the proposed method (default) or one of the paper's baselines")
     p.set_defaults(func=cmd_solve)
 
     p = sub.add_parser("demo", help="simulate and solve the built-in phantom")

@@ -14,6 +14,10 @@ tibia frame, pin points in their pin's frame). The schedule:
 5. quality gates, the resection plane, and its covariance-based uncertainty.
 
 A pin's roll about its own axis is unobservable (a cylinder), so that direction is fixed.
+
+``SolverConfig.method`` selects the proposed method or one of the paper's baselines
+(``METHODS``); all share the global alignment, the pin triangulation, the optimiser, the
+quality gates and the uncertainty.
 """
 
 from __future__ import annotations
@@ -43,7 +47,13 @@ from .plan import Plan, RigidModel
 from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
-__all__ = ["InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
+__all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
+
+# The proposed method, the same without the encoder odometry factor, and the paper's four
+# baselines: model projection only (E_mp) or contour back-projection only (E_rp + E_bp), each
+# "split" (views from the bone first, then the pins with the views held) or "joint".
+METHODS = ("slam", "slam-noenc", "projection-split", "projection-joint",
+           "backprojection-split", "backprojection-joint")
 
 
 @dataclass(frozen=True)
@@ -77,7 +87,11 @@ class SolverConfig:
     min_pin_points: int = 20
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
     max_angle_sigma_deg: float = 2.0
-    use_odometry: bool = True  # keep the encoders' relative motion as a factor (E_odo)
+    method: str = "slam"  # one of METHODS
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
 
 
 @dataclass
@@ -184,11 +198,13 @@ class JointProblem:
             pins.append(triangulate_pin(sightings, current, self.plan.pin_length()) or current)
         return tuple(pins)
 
-    def seated_points(self, poses: tuple[Pose, ...]) -> tuple[np.ndarray, dict]:
-        """Edge points seated on their rays for ``poses``, with the id range of each group."""
+    def seated_points(self, poses: tuple[Pose, ...],
+                      labels: tuple[str, ...] = LABELS) -> tuple[np.ndarray, dict]:
+        """Edge points of ``labels`` seated on their rays for ``poses``, with the id range
+        of each group."""
         chunks, ranges, start = [], {}, 0
         for (k, label), px in self.pixels.items():
-            if len(px) == 0:
+            if len(px) == 0 or label not in labels:
                 continue
             step = 1.0 if label == "bone" else 0.25
             chunks.append(seat_on_rays(self.model(label), self.T_cam_body(poses, k, label),
@@ -215,8 +231,9 @@ class JointProblem:
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:
-        """E_odo between the first view and each other one, if the encoders measured it."""
-        if initial.odometry_sigma is None or not self.config.use_odometry:
+        """E_odo between the first view and each other one, if the encoders measured it
+        (the proposed method only: ``slam-noenc`` and the baselines ignore it)."""
+        if initial.odometry_sigma is None or self.config.method != "slam":
             return []
         sigma_rad, sigma_mm = initial.odometry_sigma
         anchor = self.plan.landmarks.T_tibia_anat()
@@ -232,6 +249,85 @@ class JointProblem:
                                           self.pixels[k, label], ids, c.sigma_px, c.w_rp))
             terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, c.sigma_mm, c.w_bp))
         return terms
+
+
+class _Schedule:
+    """The stages of each method, run one after another on a shared state.
+
+    Every method starts from the same global image alignment and triangulates the pins
+    from their contours once the views are known, so the methods differ only in their
+    energy and in what is estimated when. ``run`` returns the final state, the terms of
+    the final energy (for the covariance and residuals) and the report of the last stage.
+    """
+
+    def __init__(self, problem: JointProblem, initial: InitialGuess,
+                 callback: Callable[[str, IterationInfo], None] | None):
+        self.problem, self.callback = problem, callback
+        self.odometry = problem.odometry_terms(initial)
+        self.iterations, self.seconds = 0, 0.0
+
+    def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
+           name: str) -> tuple[State, SolveReport]:
+        stage = None if self.callback is None else (lambda info: self.callback(name, info))
+        state, report = levenberg_marquardt(terms, state, held, options, stage)
+        self.iterations += report.iterations
+        self.seconds += report.seconds
+        return state, report
+
+    def with_triangulated_pins(self, state: State) -> State:
+        n = self.problem.n_views
+        return State(state.poses[:n] + self.problem.triangulated_pins(state.poses), state.points)
+
+    def views_on_bone_silhouette(self, state: State) -> State:
+        """Views on the bone's silhouette, with a robust scale shrinking from wide to tight."""
+        p = self.problem
+        for scale in p.config.coarse_loss_scales:
+            state, _ = self.lm(p.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale))
+                               + self.odometry, state, p.fixed_dofs(pins=True),
+                               p.config.coarse, f"coarse bone x{scale:g}")
+        return state
+
+    def run(self, method: str, state: State) -> tuple[State, list[Term], SolveReport]:
+        p, c = self.problem, self.problem.config
+        tight = RobustLoss("cauchy", c.coarse_loss_scales[-1])
+        if method.startswith("backprojection"):
+            return self.back_projection(state, split=method.endswith("split"))
+        state = self.views_on_bone_silhouette(state)
+        state = self.with_triangulated_pins(state)
+        pins_options = c.fine if method == "projection-split" else c.coarse
+        state, report = self.lm(p.silhouette_terms(PIN_LABELS, 1.0, tight), state,
+                                p.fixed_dofs(views=True), pins_options, "coarse pins")
+        if method == "projection-split":
+            return state, p.silhouette_terms(LABELS, 1.0, tight), report
+        if method == "projection-joint":
+            terms = p.silhouette_terms(LABELS, 1.0, tight)
+            state, report = self.lm(terms, state, p.fixed_dofs(), c.fine, "projection joint")
+            return state, terms, report
+        # slam: every silhouette at once (the pins tie the views together), then the joint
+        # energy with edge points seated where their rays graze the models.
+        state, _ = self.lm(p.silhouette_terms(LABELS, 1.0, tight) + self.odometry, state,
+                           p.fixed_dofs(), c.coarse, "coarse all")
+        points, ranges = p.seated_points(state.poses)
+        terms = p.edge_terms(ranges) + p.silhouette_terms(
+            LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
+        state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), c.fine, "joint")
+        return state, terms, report
+
+    def back_projection(self, state: State, split: bool) -> tuple[State, list[Term], SolveReport]:
+        """Edge points seated on their rays, E_rp + E_bp only: split (views from the bone
+        points, then the pins' points with the views held) or joint (everything at once)."""
+        p, c = self.problem, self.problem.config
+        if split:
+            points, ranges = p.seated_points(state.poses, labels=("bone",))
+            state, _ = self.lm(p.edge_terms(ranges), State(state.poses, points),
+                               p.fixed_dofs(pins=True), c.fine, "back-projection views")
+        state = self.with_triangulated_pins(state)
+        points, ranges = p.seated_points(state.poses)
+        terms = p.edge_terms(ranges)
+        held = p.fixed_dofs(views=True) if split else p.fixed_dofs()
+        name = "back-projection pins" if split else "back-projection joint"
+        state, report = self.lm(terms, State(state.poses, points), held, c.fine, name)
+        return state, terms, report
 
 
 def _gate_inputs(problem: JointProblem, initial: InitialGuess) -> str | None:
@@ -271,6 +367,28 @@ def _residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], in
     return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
 
 
+def _contour_misfit(terms: list[Term], state: State, rms: dict[str, float],
+                    config: SolverConfig) -> str | None:
+    """Why the contours do not fit the posed models, or None.
+
+    With edge points, the re-projection RMS says it. Projection-only methods have only the
+    silhouette distances, whose RMS is inflated by outline parts that are not observed
+    (occluded, out of field), so their median is used instead."""
+    limit = config.max_residual_rms_px
+    if "E_rp" in rms:
+        rms_px = rms["E_rp"] * config.sigma_px
+        if rms_px > limit:
+            return f"contours do not fit the models (re-projection RMS {rms_px:.1f} px > {limit:.1f} px)"
+        return None
+    distances = np.concatenate([t.linearize(state, jacobians=False).residuals.ravel()
+                                for t in terms if t.name == "E_mp"]) * config.sigma_px
+    median_px = float(np.median(np.abs(distances)))
+    if median_px > limit:
+        return (f"contours do not fit the models (median silhouette distance {median_px:.1f} px "
+                f"> {limit:.1f} px)")
+    return None
+
+
 def solve_joint(
     plan: Plan,
     views: list[ViewObservation],
@@ -299,50 +417,21 @@ def solve_joint(
         return not_measured(refusal, None, None)
 
     fixed = problem.fixed_dofs()
-
-    def stage(name: str):
-        return None if callback is None else (lambda info: callback(name, info))
-
-    # Global step: where in each image is the bone?
+    # Global step, shared by every method: where in each image is the bone?
     poses = tuple(align_view_in_image(problem.bone.contour, T, view.camera,
                                       view.distance_map("bone"))
                   for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
-    state = State(poses, np.zeros((0, 3)))
-    iterations, seconds = 0, 0.0
-    odometry = problem.odometry_terms(initial)
-
-    def run(terms: list[Term], held: np.ndarray, name: str) -> None:
-        nonlocal state, iterations, seconds
-        state, report = levenberg_marquardt(terms, state, held, config.coarse, stage(name))
-        iterations += report.iterations
-        seconds += report.seconds
-
-    # Views on the bone's silhouette, with a robust scale shrinking from wide to tight;
-    # then the pins placed where their contours triangulate, refined on their silhouettes
-    # with the views held; then every silhouette at once, the pins tying the views together.
-    for scale in config.coarse_loss_scales:
-        run(problem.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale)) + odometry,
-            problem.fixed_dofs(pins=True), f"coarse bone x{scale:g}")
-    state = State(state.poses[: problem.n_views] + problem.triangulated_pins(state.poses),
-                  state.points)
-    tight = RobustLoss("cauchy", config.coarse_loss_scales[-1])
-    run(problem.silhouette_terms(PIN_LABELS, 1.0, tight), problem.fixed_dofs(views=True),
-        "coarse pins")
-    run(problem.silhouette_terms(LABELS, 1.0, tight) + odometry, fixed, "coarse all")
-    points, ranges = problem.seated_points(state.poses)
-    terms = problem.edge_terms(ranges) + problem.silhouette_terms(
-        LABELS, config.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + odometry
-    state, fine = levenberg_marquardt(terms, State(state.poses, points), fixed, config.fine,
-                                      stage("joint"))
-    report = SolveReport(fine.converged, fine.reason, iterations + fine.iterations,
-                         fine.cost, fine.term_costs, seconds + fine.seconds, fine.history)
+    schedule = _Schedule(problem, initial, callback)
+    state, terms, fine = schedule.run(config.method, State(poses, np.zeros((0, 3))))
+    report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
+                         fine.term_costs, schedule.seconds, fine.history)
+    points = state.points
     rms, n_residuals = _residual_rms(terms, state)
-    rms_px = rms.get("E_rp", 0.0) * config.sigma_px
     if not fine.converged:
         return not_measured(f"the solve did not converge ({fine.reason})", state, report, rms)
-    if rms_px > config.max_residual_rms_px:
-        return not_measured(f"contours do not fit the models (re-projection RMS {rms_px:.1f} px "
-                            f"> {config.max_residual_rms_px:.1f} px)", state, report, rms)
+    misfit = _contour_misfit(terms, state, rms, config)
+    if misfit is not None:
+        return not_measured(misfit, state, report, rms)
     final_views = list(state.poses[: problem.n_views])
     separation = _view_separation_deg(final_views)
     if separation < config.min_view_separation_deg:

@@ -59,3 +59,19 @@ def test_demo_runs_on_the_builtin_phantom(tmp_path, phantom_plan):
     assert "CTR" in result.stdout or "reason" in result.stdout
     doc = json.loads((tmp_path / "demo" / "result.json").read_text())
     assert doc["inputs"]["plan"]["patient_id"] == "PHANTOM"
+
+
+def test_small_accuracy_study_writes_table_plot_and_per_run_figures(tmp_path):
+    """The study of DESIGN.md section 5 in miniature: two methods, two runs at level 1."""
+    out = tmp_path / "accuracy"
+    assert main(["bench", "accuracy", "--runs", "2", "--levels", "1", "--methods",
+                 "slam,projection-joint", "--workers", "1", "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert [r["method"] for r in doc["results"]] == ["slam", "projection-joint"]
+    for r in doc["results"]:
+        assert r["runs"] == 2 and len(r["ctr_abs_deg"]) == 2 and len(r["time_s"]) == 2
+        assert r["converged"] == sum(e is not None for e in r["ctr_abs_deg"])
+    slam = doc["results"][0]
+    assert slam["converged"] == 2 and max(slam["ctr_abs_deg"] + slam["str_abs_deg"]) < 1.0
+    assert "| slam | 1 |" in (out / "results.md").read_text()
+    assert (out / "errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -8,7 +8,7 @@ from solver.geometry import Pose
 from solver.observations import ViewObservation
 from solver.optimizer import State
 from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import InitialGuess, JointProblem, SolverConfig, solve_joint
+from solver.slam import METHODS, InitialGuess, JointProblem, SolverConfig, solve_joint
 
 
 def _linearized_problem(plan, seed=0):
@@ -175,3 +175,24 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, term.sigma_rad]) @ anchor.inverse()
     r = term.linearize(State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
     assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", [m for m in METHODS if m != "slam"])
+def test_every_baseline_answers_with_its_own_energy(real_plan, method):
+    """Each baseline either measures or refuses with a reason; its final energy is the
+    one the method is named for (and E_odo belongs to the proposed method alone)."""
+    case = simulate_case(real_plan, SimulationConfig(seed=6))
+    outcome = solve_joint(real_plan, case.views, case.initial, SolverConfig(method=method))
+    assert outcome.status in ("measured", "not_measured")
+    assert outcome.status == "measured" or outcome.reason
+    family = "slam-noenc" if method == "slam-noenc" else method.split("-")[0]
+    expected = {"projection": {"E_mp"}, "backprojection": {"E_rp", "E_bp"},
+                "slam-noenc": {"E_rp", "E_bp", "E_mp"}}[family]
+    assert set(outcome.term_costs) == expected
+    if outcome.status == "measured":
+        assert max(_errors(case, outcome)) < 5.0
+
+
+def test_an_unknown_method_is_refused_by_name():
+    with pytest.raises(ValueError, match="unknown method"):
+        SolverConfig(method="magic")
