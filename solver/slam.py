@@ -86,6 +86,7 @@ class SolverConfig:
     min_bone_points: int = 50
     min_pin_points: int = 20
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
+    max_silhouette_median_px: float = 2.5  # a model's outline this far off its contour: no fit
     max_angle_sigma_deg: float = 2.0
     method: str = "slam"  # one of METHODS
 
@@ -367,25 +368,25 @@ def _residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], in
     return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
 
 
-def _contour_misfit(terms: list[Term], state: State, rms: dict[str, float],
-                    config: SolverConfig) -> str | None:
+def _contour_misfit(problem: JointProblem, state: State, rms: dict[str, float]) -> str | None:
     """Why the contours do not fit the posed models, or None.
 
-    With edge points, the re-projection RMS says it. Projection-only methods have only the
-    silhouette distances, whose RMS is inflated by outline parts that are not observed
-    (occluded, out of field), so their median is used instead."""
-    limit = config.max_residual_rms_px
-    if "E_rp" in rms:
-        rms_px = rms["E_rp"] * config.sigma_px
-        if rms_px > limit:
-            return f"contours do not fit the models (re-projection RMS {rms_px:.1f} px > {limit:.1f} px)"
-        return None
-    distances = np.concatenate([t.linearize(state, jacobians=False).residuals.ravel()
-                                for t in terms if t.name == "E_mp"]) * config.sigma_px
-    median_px = float(np.median(np.abs(distances)))
-    if median_px > limit:
-        return (f"contours do not fit the models (median silhouette distance {median_px:.1f} px "
-                f"> {limit:.1f} px)")
+    Two checks: the re-projection RMS of the edge points (methods that have them), and, for
+    every model in every view, the median distance between its silhouette traced at the
+    final poses and the observed contour. A solve caught in a wrong basin can seat its edge
+    points well (small re-projection RMS) while a model's outline lies off its contour."""
+    c = problem.config
+    if "E_rp" in rms and rms["E_rp"] * c.sigma_px > c.max_residual_rms_px:
+        return (f"contours do not fit the models (re-projection RMS "
+                f"{rms['E_rp'] * c.sigma_px:.1f} px > {c.max_residual_rms_px:.1f} px)")
+    for term in problem.silhouette_terms(LABELS, 1.0, RobustLoss("l2")):
+        distances = np.abs(term.linearize(state, jacobians=False).residuals) * c.sigma_px
+        median_px = float(np.median(distances))
+        if median_px > c.max_silhouette_median_px:
+            label = "bone" if term.body is None else PIN_LABELS[term.body - problem.n_views]
+            return (f"the {label} outline in view {problem.views[term.view].view_id} does not "
+                    f"lie on its contour (median distance {median_px:.1f} px > "
+                    f"{c.max_silhouette_median_px:.1f} px)")
     return None
 
 
@@ -429,7 +430,7 @@ def solve_joint(
     rms, n_residuals = _residual_rms(terms, state)
     if not fine.converged:
         return not_measured(f"the solve did not converge ({fine.reason})", state, report, rms)
-    misfit = _contour_misfit(terms, state, rms, config)
+    misfit = _contour_misfit(problem, state, rms)
     if misfit is not None:
         return not_measured(misfit, state, report, rms)
     final_views = list(state.poses[: problem.n_views])

@@ -196,3 +196,17 @@ def test_every_baseline_answers_with_its_own_energy(real_plan, method):
 def test_an_unknown_method_is_refused_by_name():
     with pytest.raises(ValueError, match="unknown method"):
         SolverConfig(method="magic")
+
+
+def test_a_model_outline_off_its_contour_is_named(real_plan):
+    """The final fit check traces every silhouette at the final poses: a pin 4 mm off
+    (a solve caught in a wrong basin) is refused by name, the true poses pass."""
+    from solver.slam import _contour_misfit
+
+    case = simulate_case(real_plan, SimulationConfig(seed=8))
+    problem = JointProblem(real_plan, case.views, SolverConfig())
+    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    assert _contour_misfit(problem, State(truth, np.zeros((0, 3))), {}) is None
+    moved = Pose(truth[-2].R, truth[-2].t + 4.0 * truth[-2].R[:, 0])
+    reason = _contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))), {})
+    assert reason is not None and "pin1 outline" in reason
