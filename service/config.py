@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import ipaddress
 import os
 import re
 import tomllib
@@ -76,9 +77,14 @@ class DicomConfig:
     bind_address: str = "127.0.0.1"
     port: int = 11112
     allowed_calling_ae_titles: list[str] = field(default_factory=list)
+    allowed_source_addresses: list[str] = field(default_factory=list)  # IPs/networks; [] = any
     health_ae_title: str = "SLAMTKA_HEALTH"  # may associate and C-ECHO, never store
     max_pdu_bytes: int = 262144
+    max_message_bytes: int = 32 * 1024 * 1024  # one received dataset, assembled in memory
     max_associations: int = 4
+    max_connections: int = 512  # open sockets, before and during associations
+    max_connections_per_peer: int = 8  # per source address
+    request_timeout_s: float = 5.0  # TLS handshake, then the first PDU, each within this
     idle_timeout_s: float = 30.0
     dimse_timeout_s: float = 30.0
     tls: TlsConfig = field(default_factory=TlsConfig)
@@ -96,7 +102,19 @@ class DicomConfig:
                               "AE titles (it may not store)")
         _check_range(f"{where}.port", self.port, 0, 65535)  # 0: any free port (tests)
         _check_range(f"{where}.max_pdu_bytes", self.max_pdu_bytes, 4096, 16 * 1024 * 1024)
+        _check_range(f"{where}.max_message_bytes", self.max_message_bytes, 1024 * 1024, 1 << 30)
         _check_range(f"{where}.max_associations", self.max_associations, 1, 64)
+        _check_range(f"{where}.max_connections", self.max_connections, self.max_associations,
+                     4096)
+        _check_range(f"{where}.max_connections_per_peer", self.max_connections_per_peer, 1,
+                     self.max_connections)
+        _check_range(f"{where}.request_timeout_s", self.request_timeout_s, 0.1, 600.0)
+        for i, address in enumerate(self.allowed_source_addresses):
+            try:
+                ipaddress.ip_network(address, strict=False)
+            except ValueError:
+                raise ConfigError(f"{where}.allowed_source_addresses[{i}]: {address!r} is not an "
+                                  "IP address or network (e.g. 10.0.3.0/24)") from None
         _check_range(f"{where}.idle_timeout_s", self.idle_timeout_s, 1.0, 3600.0)
         _check_range(f"{where}.dimse_timeout_s", self.dimse_timeout_s, 1.0, 3600.0)
         self.tls.check(f"{where}.tls")

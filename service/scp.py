@@ -1,18 +1,23 @@
 """The DICOM receiver (SCP): Verification and X-ray image storage, thin handlers.
 
-Associations are accepted only from the configured calling AE titles and only when they
-call our AE title; TLS (1.2 or newer, client certificates required) is optional. The C-STORE
-handler only validates, persists and queues: it checks the instance (SOP class against the
-negotiated context, UIDs, transfer syntax, image attributes and pixel data length through
-:func:`service.frames.decode_frame`), writes it to the spool (fsynced) and appends an audit
-line before the success status goes back; a refused instance gets a failure status with the
-reason in the Error Comment and an audit line. The pipeline runs elsewhere.
+Associations are accepted only from the configured calling AE titles (and, if configured,
+source addresses) and only when they call our AE title; TLS (1.2 or newer, client
+certificates required) is optional. Connections, PDUs and message sizes are policed at the
+byte level by :mod:`service.wire` before pynetdicom sees them. The C-STORE handler only
+validates, persists and queues: it checks the command (UIDs), the dataset's byte structure
+(:mod:`service.dataset_guard`, before pydicom parses it), then the instance (SOP class
+against the negotiated context, UIDs, transfer syntax, image attributes and pixel data length
+through :func:`service.frames.decode_frame`), writes it to the spool (fsynced) and appends
+an audit line before the success status goes back; a refused instance gets a failure status
+with the reason in the Error Comment and an audit line. The pipeline runs elsewhere.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import ssl
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -31,8 +36,10 @@ from pynetdicom.sop_class import (
 
 from .audit import AuditLog
 from .config import ConfigError, DicomConfig, TlsConfig
+from .dataset_guard import DatasetError, check_dataset_bytes
 from .frames import FrameError, decode_frame
 from .spool import Spool, SpoolEntry
+from .wire import GuardedServer, WireLimits
 
 __all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_instance",
            "server_ssl_context", "client_ssl_context"]
@@ -107,11 +114,25 @@ def check_instance(ds: Dataset, context_sop_class: str, transfer_syntax: str,
     return None
 
 
+def check_command(request, context_sop_class: str) -> tuple[int, str] | None:
+    """(failure status, reason) if the C-STORE command's UIDs are unusable, else None."""
+    for keyword in ("AffectedSOPInstanceUID", "AffectedSOPClassUID"):
+        value = str(getattr(request, keyword, "") or "")
+        if not value or not UID(value).is_valid:
+            return STATUS_CANNOT_UNDERSTAND, f"{keyword} in the command is not a valid UID"
+    if str(request.AffectedSOPClassUID) != context_sop_class:
+        return STATUS_NOT_SOP_CLASS, "AffectedSOPClassUID differs from the negotiated context"
+    return None
+
+
+_NOT_LO = re.compile(r"[^\x20-\x5b\x5d-\x7e]")  # Error Comment is LO: printable, no backslash
+
+
 def _status(code: int, comment: str = "") -> Dataset:
     status = Dataset()
     status.Status = code
     if comment:
-        status.ErrorComment = comment[:64]
+        status.ErrorComment = _NOT_LO.sub("?", comment)[:64]
     return status
 
 
@@ -127,7 +148,8 @@ class DicomReceiver:
         ae.require_called_aet = True
         ae.require_calling_aet = [*config.allowed_calling_ae_titles, config.health_ae_title]
         ae.maximum_pdu_size = config.max_pdu_bytes
-        ae.maximum_associations = config.max_associations
+        # Only a backstop: service.wire counts associations by caller, not sockets.
+        ae.maximum_associations = config.max_connections
         ae.network_timeout = config.idle_timeout_s
         ae.acse_timeout = config.idle_timeout_s
         ae.dimse_timeout = config.dimse_timeout_s
@@ -139,9 +161,13 @@ class DicomReceiver:
     def start(self) -> None:
         handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
                     (evt.EVT_REJECTED, self._on_rejected)]
-        self._server = self.ae.start_server((self.config.bind_address, self.config.port),
-                                            block=False, evt_handlers=handlers,
-                                            ssl_context=self._ssl)
+        limits = WireLimits(self.config, self.audit.record)
+        self._server = self.ae.make_server((self.config.bind_address, self.config.port),
+                                           evt_handlers=handlers, ssl_context=self._ssl,
+                                           server_class=GuardedServer, limits=limits)
+        self.ae._servers.append(self._server)  # so that AE.shutdown() reaches it too
+        threading.Thread(target=self._server.serve_forever, name="slamtka-scp-accept",
+                         daemon=True).start()
         log.info("DICOM SCP %s listening on %s:%d%s", self.config.ae_title,
                  self.config.bind_address, self.port, " (TLS)" if self._ssl else "")
 
@@ -174,24 +200,30 @@ class DicomReceiver:
         elif called and called != self.config.ae_title:
             reason = f"called AE title {called!r} is not ours"
         else:
-            reason = "too many associations"
+            reason = "too many connections"  # pynetdicom's backstop; service.wire counts first
         self.audit.record("association_rejected", reason=reason, **peer)
 
     def _on_store(self, event) -> Dataset:
         peer = self._peer(event)
         context = event.context
-        request_uid = str(event.request.AffectedSOPInstanceUID)
+        request_uid = str(event.request.AffectedSOPInstanceUID or "")
         if peer["calling_ae"] == self.config.health_ae_title:
             return self._refuse(peer, request_uid, STATUS_NOT_AUTHORIZED,
                                 "the health-check AE title may not store")
+        refusal = check_command(event.request, context.abstract_syntax)
+        if refusal is not None:
+            return self._refuse(peer, request_uid, *refusal)
         try:
+            check_dataset_bytes(event.request.DataSet.getvalue(),
+                                not UID(context.transfer_syntax).is_implicit_VR)
             ds = event.dataset
             ds.file_meta = event.file_meta
-        except Exception as exc:  # pydicom raises many types on a malformed byte stream
-            return self._refuse(peer, request_uid, STATUS_CANNOT_UNDERSTAND,
-                                f"dataset cannot be decoded: {exc}")
-        refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,
-                                 request_uid)
+            refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,
+                                     request_uid)
+        except DatasetError as exc:
+            refusal = STATUS_CANNOT_UNDERSTAND, f"malformed dataset: {exc}"
+        except Exception as exc:  # pydicom raises many types on values it cannot convert
+            refusal = STATUS_CANNOT_UNDERSTAND, f"dataset cannot be decoded: {exc}"
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
         try:

@@ -47,11 +47,11 @@ def write_atomic(path: Path, data: bytes, replace: bool = True) -> bool:
     """
     path = Path(path)
     tmp = path.parent / f".tmp-{uuid.uuid4().hex}"
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    try:
+    try:  # a failed write (disk full) leaves nothing behind
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
         if replace:
             os.replace(tmp, path)
         else:

@@ -13,6 +13,7 @@ from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
 from service.audit import AuditLog, read_audit
 from service.config import config_from_dict
 from service.frames import encode_frame
+from service.pki import client_context
 from service.scp import DicomReceiver, check_instance
 from service.spool import Spool, entry_id
 from service_testing import make_pki, small_frame
@@ -100,14 +101,17 @@ def test_invalid_instances_get_a_failure_status_with_the_reason(scp):
     truncated.PixelData = truncated.PixelData[:-100]
     bad_uid = encode_frame(small_frame(sop_instance_uid="1.2.3.abc"))
     statuses = [assoc.send_c_store(ds) for ds in (no_patient, truncated, bad_uid)]
-    assoc.release()
-    assert [s.Status for s in statuses] == [0xC000, 0xC000, 0xC000]
+    assert [s.Status for s in statuses[:2]] == [0xC000, 0xC000]
     assert statuses[0].ErrorComment == "PatientID is missing"
     assert "PixelData holds" in statuses[1].ErrorComment
-    assert statuses[2].ErrorComment == "SOPInstanceUID is not a valid UID"
+    # A command whose UID pynetdicom cannot decode: the association is aborted, and audited.
+    assert "Status" not in statuses[2] and assoc.is_aborted
     assert stored == [] and receiver.spool.count() == 0
     rejected = _events(tmp_path, "rejected")
-    assert [e["reason"] for e in rejected][0] == "PatientID is missing" and len(rejected) == 3
+    aborted = _events(tmp_path, "association_aborted")
+    assert [e["reason"] for e in aborted] == [
+        "Affected SOP Instance UID in the command is not a valid UID"]
+    assert [e["reason"] for e in rejected][0] == "PatientID is missing" and len(rejected) == 2
 
 
 def test_sop_class_must_match_the_negotiated_context():
@@ -134,16 +138,7 @@ def pki(tmp_path_factory):
 
 
 def _tls_client(pki, cert="client", maximum=None) -> tuple:
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    ctx.check_hostname = False
-    ctx.load_verify_locations(pki["ca"])
-    if maximum is not None:
-        ctx.minimum_version = ssl.TLSVersion.MINIMUM_SUPPORTED
-        ctx.maximum_version = maximum
-        ctx.set_ciphers("ALL:@SECLEVEL=0")
-    if cert is not None:
-        ctx.load_cert_chain(pki[f"{cert}_cert"], pki[f"{cert}_key"])
-    return ctx, None
+    return client_context(pki, cert, maximum), None
 
 
 @pytest.mark.filterwarnings("ignore:ssl.TLSVersion.TLSv1_1 is deprecated")
