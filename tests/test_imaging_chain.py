@@ -9,6 +9,7 @@ import numpy as np
 import pydicom
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 
 from service.bench_imaging import contour_scores, residual_distortion_px
 from service.cli import main
@@ -94,6 +95,20 @@ def test_contours_meet_the_figures_and_label_pins(radiographs):
         assert s["coverage"] >= 0.85
         assert s["pins_labelled"]
         assert found.diagnostics["polarity"] == "dark"
+
+
+@pytest.mark.parametrize("seed,view,overlap", [(2, 1, "staggered"), (3, 0, "coincident")])
+def test_overlapping_pin_shadows_are_split_into_the_two_pins(phantom_plan, scene, seed, view, overlap):
+    """Seen along the resection plane the pins line up and their shadows merge into one."""
+    case = simulate_case(phantom_plan, SimulationConfig(seed=seed))
+    r = render_radiograph(phantom_plan, case.truth_T_cam_tibia[view], case.truth_T_tibia_pin, default_camera(),
+                          XRayParams(), np.random.default_rng(seed), scene)
+    found = extract_contours(r.image)
+    assert found.diagnostics["pins_overlap"] == overlap
+    assert contour_scores(r, found)["pins_labelled"]
+    for label in ("pin1", "pin2"):
+        distance = cKDTree(r.silhouettes[label]).query(getattr(found, label))[0]
+        assert np.percentile(distance, 95) <= 1.5, label
 
 
 def test_contours_of_an_inverted_frame_and_pin_labels_from_the_expected_positions(radiographs):

@@ -7,9 +7,10 @@ Pipeline (all tuning in :class:`ContourConfig`, loadable from TOML or JSON):
    the polarity (attenuating objects dark or bright) follows from which side is brighter.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
-3. Pins: ``A`` minus a 100-px median background above ``pin_threshold`` (hysteresis); the
-   union of the pins' shadows is split into two bars by fitting two line segments
-   (alternating assignment and refit), since the two parallel pins usually overlap.
+3. Pins: ``A`` minus a 100-px median background above ``pin_threshold`` (hysteresis). Seen
+   nearly along the resection plane the two parallel pins often overlap, staggered along
+   their common axis; steel saturates, so one shadow is split into two bars where its long
+   sides step from one pin's edge to the other's (``pin_min_step_px``).
 4. Bone: ``A`` minus a soft-tissue background (a low-order polynomial fitted by asymmetric
    least squares, so that it hugs the tissue under the bone) above ``bone_threshold``; the
    boundary of that mask, with its holes, is the coarse outer outline of tibia with fibula.
@@ -71,6 +72,7 @@ class ContourConfig:
     pin_threshold: float = 0.8  # attenuation of steel over its 100-px median background
     pin_min_area_px: int = 80
     pin_edge_offset_px: float = 0.0
+    pin_min_step_px: float = 1.0  # least offset between overlapping pins' edges told apart
     pin_exclusion_px: float = 5.0  # bone edges this close to a pin shadow are dropped
     pin_order: str = "left_to_right"  # or "right_to_left" for mirrored images
 
@@ -82,7 +84,7 @@ class ContourConfig:
         if self.background_downscale < 1 or self.background_degree < 1:
             raise ValueError("background_downscale and background_degree must be >= 1")
         positive = ("smoothing_px", "edge_search_px", "barrier_strength", "bone_threshold",
-                    "pin_threshold", "min_edge_strength")
+                    "pin_threshold", "min_edge_strength", "pin_min_step_px")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -217,26 +219,90 @@ def _fit_bar(p: np.ndarray) -> _Bar:
     return _Bar(centre, direction, 0.5 * (hi - lo), float(np.percentile(np.abs(across), 98)))
 
 
-def _split_pins(pixels: np.ndarray, labels: np.ndarray) -> list[_Bar]:
-    """Two bars fitted to the pin pixels: by components when separate, else by k-segments."""
-    if labels.max() >= 2:
-        sizes = np.bincount(labels)[1:]
-        top = np.argsort(sizes)[::-1][:2] + 1
-        return [_fit_bar(pixels[labels == t]) for t in top]
-    bar = _fit_bar(pixels)
-    along = (pixels - bar.centre) @ bar.direction
-    assign = along > 0  # start: the two halves of the union along its axis
-    bars = [bar, bar]
-    for _ in range(20):
-        if assign.all() or not assign.any():
-            break
-        bars = [_fit_bar(pixels[~assign]), _fit_bar(pixels[assign])]
-        new = np.abs(bars[1].distance(pixels)) < np.abs(bars[0].distance(pixels))
-        new = bars[1].distance(pixels) < bars[0].distance(pixels)
-        if np.array_equal(new, assign):
-            break
-        assign = new
-    return bars
+def _line_step(s: np.ndarray, o: np.ndarray, min_points: int) -> tuple[float, float] | None:
+    """Where a side of a shadow steps from one straight edge to another: ``(s, step)``.
+
+    ``o(s)`` (sorted by ``s``) is fitted by two lines split at every candidate point at once
+    (prefix sums of the normal equations); the split with the least squared residual wins,
+    and its step is the difference of the two lines there.
+    """
+    if len(s) < 2 * min_points:
+        return None
+    s0 = s.mean()
+    x, y = s - s0, o - o.mean()
+    sums = np.cumsum(np.column_stack([np.ones_like(x), x, x * x, y, x * y, y * y]), axis=0)
+    head = np.vstack([np.zeros(6), sums[:-1]])  # sums over [0, i)
+    tail = sums[-1] - head  # sums over [i, N)
+
+    def fit(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n, sx, sxx, sy, sxy, syy = m.T
+        vx = np.maximum(sxx - sx * sx / n, 1e-9)
+        cxy = sxy - sx * sy / n
+        slope = cxy / vx
+        return syy - sy * sy / n - cxy * slope, slope, (sy - slope * sx) / n
+
+    split = np.arange(min_points, len(s) - min_points + 1)
+    left, right = fit(head[split]), fit(tail[split])
+    best = int(np.argmin(left[0] + right[0]))
+    at = 0.5 * (x[split[best] - 1] + x[split[best]])
+    step = (right[2][best] + right[1][best] * at) - (left[2][best] + left[1][best] * at)
+    return float(at + s0), float(step)
+
+
+def _bar_from_edges(s: np.ndarray, o: np.ndarray, top: np.ndarray, span: tuple[float, float],
+                    centre: np.ndarray, d: np.ndarray, n: np.ndarray) -> _Bar:
+    """A bar from its two edge lines (``o = a + b s`` on either side) over ``span`` of ``s``."""
+    lines = [np.polyfit(s[side], o[side], 1) for side in (top, ~top)]
+    mid = 0.5 * (span[0] + span[1])
+    slope, offset = 0.5 * (lines[0][0] + lines[1][0]), 0.5 * (np.polyval(lines[0], mid) + np.polyval(lines[1], mid))
+    direction = (d + slope * n) / np.hypot(1.0, slope)
+    return _Bar(centre + mid * d + offset * n, direction, 0.5 * (span[1] - span[0]) * np.hypot(1.0, slope),
+                0.5 * float(np.polyval(lines[0], mid) - np.polyval(lines[1], mid)))
+
+
+def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tuple[list[_Bar], str]:
+    """Two bars in one shadow where the pins overlap, and how they overlap.
+
+    The steel saturates the detector, so the overlap is no darker than either pin: only the
+    outline tells them apart. Seen nearly along the resection plane the two pins line up,
+    staggered along their common axis and offset across it; each long side of the union
+    then steps once from one pin's edge to the other's, at the two ends of the overlap. The
+    pin holding one end of the union reaches to the farther step, the other from the nearer
+    step to the other end. A side without a step is shared by both pins over their spans.
+    """
+    centre = edges.mean(axis=0)
+    _, vectors = np.linalg.eigh(np.cov((edges - centre).T))
+    d = vectors[:, -1]
+    n = np.array([-d[1], d[0]])
+    s, o, facing = (edges - centre) @ d, (edges - centre) @ n, normals @ n
+    long = np.abs(facing) > 0.9
+    width = 2.0 * float(np.median(np.abs(o[long]))) if long.any() else 0.0
+    ends = (s.min(), s.max())
+    sides = long & (s > ends[0] + width) & (s < ends[1] - width)
+    top = facing > 0
+    steps = []
+    for side in (sides & top, sides & ~top):
+        order = np.argsort(s[side])
+        found = _line_step(s[side][order], o[side][order], max(5, int(width)))
+        steps.append(found[0] if found is not None and abs(found[1]) >= min_step else None)
+    overlap = "staggered"
+    if steps == [None, None]:
+        # The edges coincide. Two pins of one model project to nearly equal lengths, so the
+        # middle of the union lies in their overlap: each pin owns the half beyond it.
+        steps, overlap = [0.5 * (ends[0] + ends[1])] * 2, "coincident"
+    at = [b for b in steps if b is not None]
+    spans = ((ends[0], max(at)), (min(at), ends[1]))
+    # On a side with a step a pin owns its part of that side; without one, the two pins'
+    # edges coincide there and each owns the side over its span.
+    mine = []
+    for k, span in enumerate(spans):
+        on = [(s < b if k == 0 else s >= b) if b is not None else (s >= span[0]) & (s <= span[1])
+              for b in steps]
+        mine.append(sides & np.where(top, on[0], on[1]))
+    if min(min((m & top).sum(), (m & ~top).sum()) for m in mine) < 2:
+        bar = _fit_bar(edges)  # too short to tell (seen end-on): both pins share the outline
+        return [bar, bar], "unresolved"
+    return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
 
 
 def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | None) -> list[_Bar]:
@@ -272,10 +338,6 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     if not mask.any():
         return [empty, empty], mask, {"pins_found": 0}
     mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
-    ys, xs = np.nonzero(mask)
-    pixels = np.column_stack([xs, ys]).astype(float)
-    _, comp = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    bars = _order_pins(_split_pins(pixels, comp[ys, xs]), config, expected)
     points, normals = _outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
@@ -286,12 +348,20 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     edges, normals, _, _ = _edges_along_normals(grad, points, normals, config.edge_search_px,
                                                 config.min_edge_strength)
     edges = edges + config.pin_edge_offset_px * normals
+    count, comp, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count > 2:
+        ys, xs = np.nonzero(mask)
+        top = np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2] + 1
+        bars, overlap = [_fit_bar(np.column_stack([xs, ys])[comp[ys, xs] == t].astype(float)) for t in top], "apart"
+    else:
+        bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
+    bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
-    # A point on the shared outline of overlapping shadows belongs to both pins.
-    tolerance = 3.0
-    result = [edges[(distance[i] <= distance[1 - i] + 0.5) | (distance[i] < tolerance)
-                    & (distance[1 - i] < tolerance)] for i in range(2)]
+    # Where the two pins' edges are closer than a step can be seen, a point is on both.
+    shared = 0.5 * config.pin_min_step_px
+    result = [edges[distance[i] <= distance[1 - i] + shared] for i in range(2)]
     info = {"pins_found": 2 if all(len(r) for r in result) else sum(bool(len(r)) for r in result),
+            "pins_overlap": overlap,
             "pin_centres_px": [b.centre.tolist() for b in bars],
             "pin_widths_px": [2 * b.half_width for b in bars]}
     return result, mask, info

@@ -290,7 +290,10 @@ def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | 
                      for i, T in enumerate(T_tibia_pins)})
     ideal, distorted = {}, {}
     for label, (generator, T) in outlines.items():
-        uv = camera.project(T.apply(generator.outline_points(T, camera, _TRUTH_SPACING_PX)))
+        # A pin is convex: every contour generator is on its outline. (The footprint test
+        # that drops a bone's interior folds is too coarse for a 20 px wide shaft.)
+        points = generator.outline_points(T, camera, _TRUTH_SPACING_PX, outer_only=label == "bone")
+        uv = camera.project(T.apply(points))
         ideal[label] = uv
         observed = distortion.distort(uv) if len(uv) else uv
         distorted[label] = observed[camera.in_field(observed, 2.0)] if len(uv) else uv
