@@ -4,9 +4,10 @@ A :class:`Frame` is one single-plane C-arm image with the geometry attributes th
 cross-checks (DESIGN.md section 6): positioner angles, source distances and the imager pixel
 spacing at the detector. :func:`encode_frame` writes it as X-Ray Angiographic Image Storage
 (default) or X-Ray Radiofluoroscopic Image Storage, as mobile C-arms send them; the result
-passes dicom3tools' ``dciodvfy``. :func:`decode_frame` accepts XA, RF, DX and Secondary
-Capture instances and raises :class:`FrameError` naming the attribute that is missing or
-invalid.
+passes dicom3tools' ``dciodvfy``. :func:`decode_frame` accepts XA, Enhanced XA, RF, DX and
+Secondary Capture instances and raises :class:`FrameError` naming the attribute that is
+missing or invalid. Of an Enhanced XA instance (multi-frame, geometry in functional groups)
+the first frame is used, with the geometry recorded for it.
 
 Pixel convention: ``pixels`` is MONOCHROME2 (higher = brighter on display), unsigned 16 bit.
 A MONOCHROME1 instance is inverted on decode so downstream code sees one convention.
@@ -28,9 +29,10 @@ from pydicom.uid import (
 )
 
 __all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "SOP_CLASSES",
-           "XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
+           "XA_IMAGE_STORAGE", "ENHANCED_XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
 
 XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1")
+ENHANCED_XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1.1")
 RF_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.2")
 DX_PRESENTATION_STORAGE = UID("1.2.840.10008.5.1.4.1.1.1.1")
 DX_PROCESSING_STORAGE = UID("1.2.840.10008.5.1.4.1.1.1.1.1")
@@ -39,12 +41,26 @@ SECONDARY_CAPTURE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.7")
 # SOP class -> modality values accepted for it on decode.
 SOP_CLASSES: dict[str, tuple[str, ...]] = {
     XA_IMAGE_STORAGE: ("XA",),
+    ENHANCED_XA_IMAGE_STORAGE: ("XA",),
     RF_IMAGE_STORAGE: ("RF",),
     DX_PRESENTATION_STORAGE: ("DX",),
     DX_PROCESSING_STORAGE: ("DX",),
     SECONDARY_CAPTURE_STORAGE: ("XA", "RF", "DX", "OT"),
 }
 _ENCODABLE = {XA_IMAGE_STORAGE: "XA", RF_IMAGE_STORAGE: "RF"}
+# Where Enhanced XA keeps, per frame, what single-frame XA has at the top level:
+# (functional group sequence, attribute in it, single-frame attribute it stands for).
+_FUNCTIONAL_GROUP_ATTRIBUTES = (
+    ("PositionerPositionSequence", "PositionerPrimaryAngle", "PositionerPrimaryAngle"),
+    ("PositionerPositionSequence", "PositionerSecondaryAngle", "PositionerSecondaryAngle"),
+    ("XRayGeometrySequence", "DistanceSourceToDetector", "DistanceSourceToDetector"),
+    ("XRayGeometrySequence", "DistanceSourceToIsocenter", "DistanceSourceToPatient"),
+    ("FramePixelDataPropertiesSequence", "ImagerPixelSpacing", "ImagerPixelSpacing"),
+    ("PixelMeasuresSequence", "PixelSpacing", "PixelSpacing"),
+    ("FrameContentSequence", "FrameAcquisitionDateTime", "AcquisitionDateTime"),
+    ("FrameAnatomySequence", "FrameLaterality", "ImageLaterality"),
+)
+_FUNCTIONAL_GROUPS = ("SharedFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence")
 
 
 class FrameError(ValueError):
@@ -258,7 +274,11 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     photometric = str(_required(ds, "PhotometricInterpretation"))
     if photometric not in ("MONOCHROME1", "MONOCHROME2"):
         raise FrameError(f"PhotometricInterpretation {photometric} is not MONOCHROME1/2")
-    if int(ds.get("NumberOfFrames", 1) or 1) != 1:
+    try:
+        frames = int(ds.get("NumberOfFrames", 1) or 1)
+    except (TypeError, ValueError):
+        raise FrameError(f"NumberOfFrames {ds.NumberOfFrames!r} is not a number") from None
+    if frames < 1 or (frames > 1 and ds.SOPClassUID != ENHANCED_XA_IMAGE_STORAGE):
         raise FrameError(f"NumberOfFrames is {ds.NumberOfFrames}: send single-frame images")
     if int(_required(ds, "PixelRepresentation")) != 0:
         raise FrameError("PixelRepresentation is signed; X-ray frames must be unsigned")
@@ -270,12 +290,12 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     if "PixelData" not in ds:
         raise FrameError("PixelData is missing")
     syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", ExplicitVRLittleEndian)
-    expected = rows * columns * bits_allocated // 8
+    expected = frames * rows * columns * bits_allocated // 8
     if not syntax.is_compressed and len(ds.PixelData) not in (expected, expected + 1):
-        raise FrameError(f"PixelData holds {len(ds.PixelData)} bytes, Rows x Columns x "
-                         f"BitsAllocated need {expected}")
+        raise FrameError(f"PixelData holds {len(ds.PixelData)} bytes, NumberOfFrames x Rows x "
+                         f"Columns x BitsAllocated need {expected}")
     try:
-        array = ds.pixel_array
+        array = ds.pixel_array if frames == 1 else ds.pixel_array[0]
     except Exception as exc:  # pydicom raises many types for bad or undecodable pixel data
         raise FrameError(f"PixelData cannot be decoded (transfer syntax {syntax}): {exc}") from None
     if array.shape != (rows, columns):
@@ -286,37 +306,64 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     return pixels, bits_stored
 
 
+def _first_item(ds: Dataset, keyword: str) -> Dataset | None:
+    sequence = ds.get(keyword)
+    return sequence[0] if sequence else None
+
+
+def _first_frame_attributes(ds: Dataset) -> Dataset:
+    """The attributes of an Enhanced XA instance's first frame under their single-frame names.
+
+    Its functional groups (per-frame over shared) override the top level, so the rest of
+    decoding reads one instance kind. Other instances are returned as they are.
+    """
+    if ds.get("SOPClassUID") != ENHANCED_XA_IMAGE_STORAGE:
+        return ds
+    flat = Dataset()
+    for element in ds:
+        if element.keyword not in ("PixelData", *_FUNCTIONAL_GROUPS):
+            flat.add(element)
+    for group in (_first_item(ds, keyword) for keyword in _FUNCTIONAL_GROUPS):
+        for sequence, keyword, single_frame_keyword in _FUNCTIONAL_GROUP_ATTRIBUTES:
+            item = _first_item(group, sequence) if group is not None else None
+            value = item.get(keyword) if item is not None else None
+            if value not in (None, ""):
+                setattr(flat, single_frame_keyword, value)
+    return flat
+
+
 def decode_frame(ds: Dataset) -> Frame:
     """The :class:`Frame` of a received instance, or :class:`FrameError` saying what is wrong."""
-    sop_class = str(_required(ds, "SOPClassUID"))
+    attrs = _first_frame_attributes(ds)
+    sop_class = str(_required(attrs, "SOPClassUID"))
     if sop_class not in SOP_CLASSES:
         raise FrameError(f"SOPClassUID {sop_class} is not an X-ray image class "
-                         "(XA, RF, DX or Secondary Capture)")
-    modality = str(_required(ds, "Modality"))
+                         "(XA, Enhanced XA, RF, DX or Secondary Capture)")
+    modality = str(_required(attrs, "Modality"))
     if modality not in SOP_CLASSES[sop_class]:
         raise FrameError(f"Modality {modality} is not an X-ray modality for SOP class {sop_class}")
     pixels, bits_stored = _pixels(ds)
-    laterality = str(ds.get("ImageLaterality", "") or ds.get("Laterality", "") or "") or None
+    laterality = str(attrs.get("ImageLaterality", "") or attrs.get("Laterality", "") or "") or None
     if laterality in ("B", "U"):
         laterality = None
     if laterality not in (None, "L", "R"):
         raise FrameError(f"Laterality {laterality!r} is not L or R")
     return Frame(
         pixels=pixels,
-        imager_pixel_spacing_mm=_pixel_spacing(ds),
-        primary_angle_deg=_optional_float(ds, "PositionerPrimaryAngle", -180.0, 180.0),
-        secondary_angle_deg=_optional_float(ds, "PositionerSecondaryAngle", -180.0, 180.0),
-        sid_mm=_optional_float(ds, "DistanceSourceToDetector", 100.0, 5000.0),
-        sod_mm=_optional_float(ds, "DistanceSourceToPatient", 50.0, 5000.0),
-        acquisition_datetime=_acquisition_datetime(ds),
-        patient_id=str(_required(ds, "PatientID")),
-        patient_name=str(ds.get("PatientName", "") or ""),
-        study_uid=str(_required(ds, "StudyInstanceUID")),
-        series_uid=str(_required(ds, "SeriesInstanceUID")),
-        sop_instance_uid=str(_required(ds, "SOPInstanceUID")),
+        imager_pixel_spacing_mm=_pixel_spacing(attrs),
+        primary_angle_deg=_optional_float(attrs, "PositionerPrimaryAngle", -180.0, 180.0),
+        secondary_angle_deg=_optional_float(attrs, "PositionerSecondaryAngle", -180.0, 180.0),
+        sid_mm=_optional_float(attrs, "DistanceSourceToDetector", 100.0, 5000.0),
+        sod_mm=_optional_float(attrs, "DistanceSourceToPatient", 50.0, 5000.0),
+        acquisition_datetime=_acquisition_datetime(attrs),
+        patient_id=str(_required(attrs, "PatientID")),
+        patient_name=str(attrs.get("PatientName", "") or ""),
+        study_uid=str(_required(attrs, "StudyInstanceUID")),
+        series_uid=str(_required(attrs, "SeriesInstanceUID")),
+        sop_instance_uid=str(_required(attrs, "SOPInstanceUID")),
         sop_class_uid=sop_class,
         laterality=laterality,
         modality=modality,
         bits_stored=max(8, bits_stored),
-        instance_number=int(ds.get("InstanceNumber", 1) or 1),
+        instance_number=int(attrs.get("InstanceNumber", 1) or 1),
     )

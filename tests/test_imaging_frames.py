@@ -10,7 +10,10 @@ import numpy as np
 import pydicom
 import pytest
 
+from pydicom.dataset import Dataset
+
 from service.frames import (
+    ENHANCED_XA_IMAGE_STORAGE,
     RF_IMAGE_STORAGE,
     XA_IMAGE_STORAGE,
     Frame,
@@ -85,6 +88,82 @@ def test_monochrome1_is_inverted_to_monochrome2():
     stored = ds.pixel_array.copy()
     ds.PhotometricInterpretation = "MONOCHROME1"
     assert np.array_equal(decode_frame(ds).pixels, 4095 - stored)
+
+
+def _item(**attributes) -> Dataset:
+    item = Dataset()
+    for keyword, value in attributes.items():
+        setattr(item, keyword, value)
+    return item
+
+
+def _enhanced_xa(frame: Frame, frames: int = 3) -> Dataset:
+    """``frame`` as frame 1 of an Enhanced XA rotational run, its geometry only in the
+    functional groups (positioner per frame, geometry and spacing shared), as such C-arms send it."""
+    ds = encode_frame(frame)
+    ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID = ENHANCED_XA_IMAGE_STORAGE
+    for keyword in ("PositionerPrimaryAngle", "PositionerSecondaryAngle", "DistanceSourceToDetector",
+                    "DistanceSourceToPatient", "ImagerPixelSpacing", "Laterality"):
+        delattr(ds, keyword)
+    ds.AcquisitionDateTime = "20250314000000+0000"  # of the run; frame 1 says when it was taken
+    ds.NumberOfFrames = frames
+    ds.PixelData = np.stack([frame.pixels + k for k in range(frames)]).astype("<u2").tobytes()
+    ds.SharedFunctionalGroupsSequence = [_item(
+        FramePixelDataPropertiesSequence=[_item(ImagerPixelSpacing=list(frame.imager_pixel_spacing_mm))],
+        XRayGeometrySequence=[_item(DistanceSourceToIsocenter=frame.sod_mm,
+                                    DistanceSourceToDetector=frame.sid_mm)],
+        FrameAnatomySequence=[_item(FrameLaterality=frame.laterality)])]
+    ds.PerFrameFunctionalGroupsSequence = [_item(
+        PositionerPositionSequence=[_item(PositionerPrimaryAngle=frame.primary_angle_deg + 10 * k,
+                                          PositionerSecondaryAngle=frame.secondary_angle_deg)],
+        FrameContentSequence=[_item(FrameAcquisitionDateTime=(WHEN + timedelta(seconds=k)).strftime(
+            "%Y%m%d%H%M%S.%f") + "+0000")]) for k in range(frames)]
+    return ds
+
+
+def test_enhanced_xa_decodes_its_first_frame_with_the_geometry_of_its_functional_groups(tmp_path):
+    frame = _frame()
+    path = tmp_path / "enhanced.dcm"
+    _enhanced_xa(frame).save_as(path, enforce_file_format=True)
+    back = decode_frame(pydicom.dcmread(path))
+    assert np.array_equal(back.pixels, frame.pixels)
+    assert back.imager_pixel_spacing_mm == pytest.approx(frame.imager_pixel_spacing_mm)
+    assert (back.primary_angle_deg, back.secondary_angle_deg) == (-30.0, 2.5)
+    assert (back.sid_mm, back.sod_mm) == (1000.0, 620.0)
+    assert back.acquisition_datetime == WHEN and back.laterality == "R"
+    assert (back.sop_class_uid, back.modality, back.bits_stored) == (ENHANCED_XA_IMAGE_STORAGE, "XA", 12)
+
+
+def test_enhanced_xa_per_frame_groups_override_shared_and_top_level():
+    ds = _enhanced_xa(_frame(), frames=2)
+    ds.PerFrameFunctionalGroupsSequence[0].XRayGeometrySequence = [_item(DistanceSourceToDetector=980.0)]
+    ds.DistanceSourceToDetector = "1200"
+    back = decode_frame(ds)
+    assert (back.sid_mm, back.sod_mm) == (980.0, 620.0)
+    del ds.SharedFunctionalGroupsSequence
+    ds.ImagerPixelSpacing = ["0.3", "0.3"]
+    assert decode_frame(ds).imager_pixel_spacing_mm == (0.3, 0.3)
+
+
+@pytest.mark.parametrize("mutate,message", [
+    (lambda ds: setattr(ds, "NumberOfFrames", 4), "PixelData holds"),
+    (lambda ds: ds.SharedFunctionalGroupsSequence[0].XRayGeometrySequence[0].__setattr__(
+        "DistanceSourceToDetector", 5.0), "DistanceSourceToDetector"),
+    (lambda ds: delattr(ds, "SharedFunctionalGroupsSequence"), "ImagerPixelSpacing is missing"),
+])
+def test_bad_enhanced_xa_is_refused_naming_the_attribute(mutate, message):
+    ds = _enhanced_xa(_frame())
+    mutate(ds)
+    with pytest.raises(FrameError, match=message):
+        decode_frame(ds)
+
+
+def test_multi_frame_single_plane_xa_is_still_refused():
+    ds = encode_frame(_frame())
+    ds.NumberOfFrames = 2
+    ds.PixelData = ds.PixelData * 2
+    with pytest.raises(FrameError, match="single-frame"):
+        decode_frame(ds)
 
 
 @pytest.mark.parametrize("mutate,message", [
