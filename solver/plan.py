@@ -36,6 +36,7 @@ PIN_EXTENT_MM = (20.0, 300.0)
 # Silhouettes are traced on a simplified copy of a large mesh: the outline moves by far less
 # than a pixel, and the cost per iteration stays low.
 _SILHOUETTE_MAX_FACES = 6000
+_SEARCH_MAX_FACES = 1500
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,7 @@ class RigidModel:
     meshes: list[trimesh.Trimesh]
     sdf: SignedDistanceField
     contour: ContourGenerator
+    coarse_contour: ContourGenerator  # a lighter mesh for the global set-up search
 
     @staticmethod
     def build(
@@ -74,7 +76,11 @@ class RigidModel:
         combined = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
         if len(combined.faces) > _SILHOUETTE_MAX_FACES:
             combined = combined.simplify_quadric_decimation(face_count=_SILHOUETTE_MAX_FACES)
-        return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined))
+        coarse = combined
+        if len(combined.faces) > _SEARCH_MAX_FACES:
+            coarse = combined.simplify_quadric_decimation(face_count=_SEARCH_MAX_FACES)
+        return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined),
+                          ContourGenerator.from_mesh(coarse))
 
 
 @dataclass

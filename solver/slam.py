@@ -44,6 +44,7 @@ from .optimizer import (
     pose_covariance,
 )
 from .plan import Plan, RigidModel
+from .setup_search import search_setup
 from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
@@ -88,6 +89,7 @@ class SolverConfig:
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
     max_silhouette_median_px: float = 2.5  # a model's outline this far off its contour: no fit
     max_angle_sigma_deg: float = 2.0
+    global_search: bool = True  # restart from a global set-up search when the solve goes astray
     method: str = "slam"  # one of METHODS
 
     def __post_init__(self) -> None:
@@ -113,6 +115,7 @@ class SolveOutcome:
     converged: bool
     convergence_reason: str
     point_counts: dict[str, int] = field(default_factory=dict)
+    initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
 
 
 def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
@@ -168,6 +171,10 @@ class JointProblem:
         self.n_views = len(views)
         self.pixels = {(k, label): thin_contour(v.contours[label], config.edge_spacing_px)
                        for k, v in enumerate(views) for label in LABELS}
+
+    def point_counts(self) -> dict[str, int]:
+        """Kept contour points per view and label, for the result document."""
+        return {f"{self.views[k].view_id}/{label}": len(px) for (k, label), px in self.pixels.items()}
 
     def body_index(self, label: str) -> int | None:
         return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
@@ -397,60 +404,92 @@ def solve_joint(
     config: SolverConfig = SolverConfig(),
     callback: Callable[[str, IterationInfo], None] | None = None,
 ) -> SolveOutcome:
-    """Estimate view and pin poses jointly and measure the resection plane."""
+    """Estimate view and pin poses jointly and measure the resection plane.
+
+    The solve starts from the encoders' guess. If it ends in a wrong basin (the outlines do
+    not fit, or it does not converge), the patient set-up error is searched for globally
+    (:mod:`solver.setup_search`) and the solve is run again from there."""
     start = time.perf_counter()
     problem = JointProblem(plan, views, config)
-    counts = {f"{views[k].view_id}/{label}": len(px) for (k, label), px in problem.pixels.items()}
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-
-    def not_measured(reason: str, state: State | None, report: SolveReport | None,
-                     rms: dict | None = None) -> SolveOutcome:
-        final = state.poses if state is not None else poses
-        return SolveOutcome(
-            "not_measured", reason, state, list(final[: problem.n_views]),
-            list(final[problem.n_views:]), None, None, rms or {},
-            report.term_costs if report else {}, report.iterations if report else 0,
-            time.perf_counter() - start, bool(report and report.converged),
-            report.reason if report else "not run", counts)
-
     refusal = _gate_inputs(problem, initial)
     if refusal is not None:
-        return not_measured(refusal, None, None)
+        return _refused(problem, refusal, None, None, {}, start, poses)
+    outcome = _solve_from(problem, initial, poses, callback, start)
+    if outcome.status == "measured" or not config.global_search or not _wrong_basin(outcome):
+        return outcome
+    correction = search_setup(
+        problem.bone.coarse_contour,
+        [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
+         for T, view in zip(initial.T_cam_tibia, views)],
+        plan.landmarks.T_tibia_anat())
+    searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+    retry = _solve_from(problem, initial, searched, callback, start)
+    retry.initialisation = "global set-up search"
+    retry.iterations += outcome.iterations
+    return retry
 
+
+def _wrong_basin(outcome: SolveOutcome) -> bool:
+    """Whether a refusal says the solve went astray (worth a global restart), rather than
+    that the geometry itself cannot give a measurement."""
+    return outcome.reason.startswith(("the solve did not converge", "contours do not fit",
+                                      "the bone outline", "the pin1 outline", "the pin2 outline"))
+
+
+def _refused(problem: JointProblem, reason: str, state: State | None,
+             report: SolveReport | None, rms: dict[str, float], start: float,
+             poses: tuple[Pose, ...] = ()) -> SolveOutcome:
+    """A "not_measured" outcome; ``poses`` stand in for the state when none was solved."""
+    n = problem.n_views
+    final = state.poses if state is not None else poses
+    return SolveOutcome(
+        "not_measured", reason, state, list(final[:n]),
+        list(final[n:]), None, None, rms, report.term_costs if report else {},
+        report.iterations if report else 0, time.perf_counter() - start,
+        bool(report and report.converged), report.reason if report else "not run",
+        problem.point_counts())
+
+
+def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
+                callback: Callable[[str, IterationInfo], None] | None,
+                start: float) -> SolveOutcome:
+    """One solve of the configured method from ``poses``, with its gates and uncertainty."""
+    config, plan, n = problem.config, problem.plan, problem.n_views
     fixed = problem.fixed_dofs()
     # Global step, shared by every method: where in each image is the bone?
     poses = tuple(align_view_in_image(problem.bone.contour, T, view.camera,
                                       view.distance_map("bone"))
-                  for T, view in zip(poses[: problem.n_views], views)) + poses[problem.n_views:]
+                  for T, view in zip(poses[:n], problem.views)) + poses[n:]
     schedule = _Schedule(problem, initial, callback)
     state, terms, fine = schedule.run(config.method, State(poses, np.zeros((0, 3))))
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
                          fine.term_costs, schedule.seconds, fine.history)
-    points = state.points
     rms, n_residuals = _residual_rms(terms, state)
     if not fine.converged:
-        return not_measured(f"the solve did not converge ({fine.reason})", state, report, rms)
+        return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
+                        rms, start)
     misfit = _contour_misfit(problem, state, rms)
     if misfit is not None:
-        return not_measured(misfit, state, report, rms)
-    final_views = list(state.poses[: problem.n_views])
+        return _refused(problem, misfit, state, report, rms, start)
+    final_views = list(state.poses[:n])
     separation = _view_separation_deg(final_views)
     if separation < config.min_view_separation_deg:
-        return not_measured(f"views are too close in angle ({separation:.1f} deg apart)",
-                            state, report, rms)
+        return _refused(problem, f"views are too close in angle ({separation:.1f} deg apart)",
+                        state, report, rms, start)
 
-    pins = list(state.poses[problem.n_views:])
+    pins = list(state.poses[n:])
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
     cov = pose_covariance(terms, state, fixed)
-    pin_slice = slice(6 * problem.n_views, 6 * (problem.n_views + 2))
-    dof = n_residuals - len(points) * 3 - fixed.size
+    pin_slice = slice(6 * n, 6 * (n + 2))
+    dof = n_residuals - len(state.points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
     angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
                                  plan.pin_length(), plan.landmarks)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
     outcome = SolveOutcome("measured", "", state, final_views, pins, plane, angle_cov, rms,
                            fine.term_costs, report.iterations, time.perf_counter() - start,
-                           True, fine.reason, counts)
+                           True, fine.reason, problem.point_counts())
     if np.max(sigma_deg) > config.max_angle_sigma_deg:
         outcome.status = "not_measured"
         outcome.reason = (f"geometry is degenerate: angle uncertainty {np.max(sigma_deg):.2f} deg "

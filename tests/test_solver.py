@@ -210,3 +210,25 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
     moved = Pose(truth[-2].R, truth[-2].t + 4.0 * truth[-2].R[:, 0])
     reason = _contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))), {})
     assert reason is not None and "pin1 outline" in reason
+
+
+def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
+    """Tens of degrees and tens of millimetres of patient set-up error, shared by both
+    views, come back to a few degrees and millimetres: a start local solving can finish."""
+    from solver.geometry import so3_log
+    from solver.setup_search import search_setup
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2, init_rot_sd_rad=0.2,
+                                                        init_trans_sd_mm=40.0))
+    anatomy = phantom_plan.landmarks.T_tibia_anat()
+
+    def error(T_cam_tibia: Pose) -> tuple[float, float]:
+        D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
+        return float(np.degrees(np.linalg.norm(so3_log(D.R)))), float(np.linalg.norm(D.t))
+
+    assert min(error(case.initial.T_cam_tibia[0])) > 20.0  # 26 deg, 83 mm
+    views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
+             for T, v in zip(case.initial.T_cam_tibia, case.views)]
+    correction = search_setup(phantom_plan.bone_model().coarse_contour, views, anatomy)
+    rotation_deg, translation_mm = error(case.initial.T_cam_tibia[0] @ correction)
+    assert rotation_deg < 8.0 and translation_mm < 6.0

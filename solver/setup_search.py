@@ -1,0 +1,168 @@
+"""Global initialisation: the patient set-up error, searched for once for all views.
+
+The encoders tell how the C-arm moved between views far better than where the patient lies
+(DESIGN.md section 4): the large error of the initial guess is one rigid error of the
+tibia, shared by every view. It can be tens of degrees, which no local method recovers, so
+it is searched for exhaustively, with each view's image telling how well a hypothesis fits:
+
+- the rotation about the knee centre (anatomical frame) runs over a grid of hypotheses; for
+  each, the bone's outline (a decimated mesh) is projected into every view and slid over a
+  truncated, reduced distance map of the observed contour for every image shift (one
+  template correlation per view), the best shift's mean distance being the view's score;
+- the best rotation's shifts say where the knee centre is seen in each view; its rays,
+  triangulated, give the translation, depth included.
+
+The result is one correction ``C`` (tibia frame) with ``T_cam_k_tibia <- T_cam_k_tibia C``
+for every view, so the motion between views is kept exactly as the encoders measured it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import cv2
+import numpy as np
+
+from .camera import Camera
+from .geometry import Pose, so3_exp
+from .observations import DistanceMap
+from .silhouette import ContourGenerator
+from .triangulation import triangulate_rays
+
+__all__ = ["SetupSearch", "search_setup"]
+
+_FORWARD_KEPT = 0.7  # fraction of the outline (best placed) that scores a hypothesis
+
+
+@dataclass(frozen=True)
+class SetupSearch:
+    """Extent and resolution of the search (angles in degrees about the anatomical axes)."""
+
+    coarse_half_range_deg: float = 30.0
+    coarse_step_deg: float = 15.0
+    refinements: int = 2  # 3x3x3 grids around the best so far, each at half the step
+    search_px: int = 400  # largest image shift considered, full-resolution pixels
+    truncate_px: float = 40.0
+    spacing_px: float = 6.0
+    downscale: int = 8
+
+
+class _ViewField:
+    """One view's truncated distance map, reduced and padded for template correlation, and
+    its observed contour pixels at the reduced resolution (for the reverse distance)."""
+
+    def __init__(self, camera: Camera, distance_map: DistanceMap, observed: np.ndarray,
+                 search: SetupSearch):
+        self.camera, self.search = camera, search
+        d = search.downscale
+        self.shape = (-(-camera.height // d), -(-camera.width // d))
+        self.observed = np.unique(np.round(observed / d).astype(int), axis=0)
+        self.truncate = search.truncate_px / d
+        self.reach = -(-search.search_px // d)
+        field = np.minimum(distance_map.values, search.truncate_px).astype(np.float32)
+        field = cv2.resize(field, None, fx=1 / d, fy=1 / d, interpolation=cv2.INTER_AREA) / d
+        self.pad = 3 * self.reach
+        self.padded = cv2.copyMakeBorder(field, self.pad, self.pad, self.pad, self.pad,
+                                         cv2.BORDER_CONSTANT, value=self.truncate)
+
+    def best_shift(self, uv: np.ndarray) -> tuple[float, np.ndarray]:
+        """Mean truncated distance (reduced pixels) at the best image shift, and that shift
+        in full-resolution pixels; an infinite score when the outline cannot be placed."""
+        d, reach = self.search.downscale, self.reach
+        scaled = uv / d
+        origin = np.floor(scaled.min(axis=0)).astype(int)
+        pix = np.round(scaled - origin).astype(int)
+        size = pix.max(axis=0) + 1
+        x0, y0 = origin + self.pad - reach
+        window = self.padded[y0: y0 + 2 * reach + size[1], x0: x0 + 2 * reach + size[0]]
+        if x0 < 0 or y0 < 0 or window.shape != (2 * reach + size[1], 2 * reach + size[0]):
+            return np.inf, np.zeros(2)
+        template = np.zeros((size[1], size[0]), np.float32)
+        template[pix[:, 1], pix[:, 0]] = 1.0
+        scores = cv2.matchTemplate(window, template, cv2.TM_CCORR)
+        iy, ix = np.unravel_index(np.argmin(scores), scores.shape)
+        shift = np.array([ix - reach, iy - reach])
+        placed = pix + origin + shift
+        # Interior folds of the outline (kept: tracing only the outer one costs more than the
+        # whole correlation) are never observed, so the worst part of the outline is ignored.
+        forward = self.padded[placed[:, 1] + self.pad, placed[:, 0] + self.pad]
+        kept = np.sort(forward)[: max(1, int(_FORWARD_KEPT * len(forward)))]
+        return float(np.mean(kept)) + self._reverse(placed), shift * float(d)
+
+    def _reverse(self, outline: np.ndarray) -> float:
+        """Mean truncated distance from the observed contour to the placed outline: an
+        outline lying on some of the edges but leaving others unexplained scores badly."""
+        image = np.full(self.shape, 255, np.uint8)
+        inside = ((outline >= 0) & (outline < np.array(self.shape[::-1]))).all(axis=1)
+        image[outline[inside, 1], outline[inside, 0]] = 0
+        field = cv2.distanceTransform(image, cv2.DIST_L2, 3)
+        obs = self.observed
+        obs = obs[((obs >= 0) & (obs < np.array(self.shape[::-1]))).all(axis=1)]
+        return float(np.mean(np.minimum(field[obs[:, 1], obs[:, 0]], self.truncate)))
+
+
+def _rotations(half_range_deg: float, step_deg: float, centre: np.ndarray) -> list[np.ndarray]:
+    """Rotation vectors (rad) on a cubic grid about ``centre``."""
+    offsets = np.arange(-half_range_deg, half_range_deg + 1e-9, step_deg)
+    return [centre + np.radians(np.array(o)) for o in product(offsets, repeat=3)]
+
+
+def search_setup(
+    contour: ContourGenerator,
+    views: list[tuple[Pose, Camera, DistanceMap, np.ndarray]],
+    T_tibia_anat: Pose,
+    search: SetupSearch = SetupSearch(),
+) -> Pose:
+    """The correction ``C`` (tibia frame) that best overlays the bone on every view;
+    ``views`` holds each view's initial pose, camera, bone distance map and bone contour."""
+    fields = [_ViewField(camera, dmap, observed, search) for _, camera, dmap, observed in views]
+    knee = T_tibia_anat.t
+
+    def correction(rotvec: np.ndarray) -> Pose:
+        return T_tibia_anat @ Pose(so3_exp(rotvec), np.zeros(3)) @ T_tibia_anat.inverse()
+
+    def evaluate(rotvec: np.ndarray, translation: Pose) -> tuple[float, list[np.ndarray]]:
+        C, total, shifts = correction(rotvec) @ translation, 0.0, []
+        for (T, camera, _, _), view_field in zip(views, fields):
+            T_c = T @ C
+            S = contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
+                                       fov_margin_px=-float(search.search_px))
+            if len(S) < 10:
+                return np.inf, []
+            score, shift = view_field.best_shift(camera.project(T_c.apply(S)))
+            total += score
+            shifts.append(shift)
+        return total, shifts
+
+    def triangulated(C: Pose, shifts: list[np.ndarray]) -> Pose:
+        """``C`` followed by the translation that puts the knee centre where it is seen."""
+        origins, directions = [], []
+        for (T, camera, _, _), shift in zip(views, shifts):
+            T_c = T @ C
+            seen_at = camera.project(T_c.apply(knee[None]))[0] + shift
+            T_tibia_cam = T_c.inverse()
+            origins.append(T_tibia_cam.t)
+            directions.append(T_tibia_cam.rotate(camera.rays(seen_at[None])[0]))
+        knee_seen, _ = triangulate_rays(np.array(origins), np.array(directions))
+        return C @ Pose(np.eye(3), knee_seen - knee)
+
+    # Depth first (a wrong depth scales the outline, which no rotation explains), then the
+    # rotation on a coarse grid and finer ones, the translation re-triangulated after each.
+    translation = Pose.identity()
+    score, shifts = evaluate(np.zeros(3), translation)
+    if not np.isfinite(score):
+        return Pose.identity()
+    translation = triangulated(Pose.identity(), shifts)
+    best_rotvec = np.zeros(3)
+    steps = [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]
+    for grid in [(search.coarse_half_range_deg, search.coarse_step_deg)] + [(h, h) for h in steps]:
+        best = (np.inf, best_rotvec, shifts)
+        for rotvec in _rotations(*grid, best_rotvec):
+            score, shifts = evaluate(rotvec, translation)
+            if score < best[0]:
+                best = (score, rotvec, shifts)
+        _, best_rotvec, shifts = best
+        C = correction(best_rotvec) @ translation
+        translation = translation @ (C.inverse() @ triangulated(C, shifts))
+    return correction(best_rotvec) @ translation
