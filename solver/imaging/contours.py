@@ -317,6 +317,9 @@ def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | 
     return first if config.pin_order == "left_to_right" else first[::-1]
 
 
+_MIN_PIN_EDGES = 20  # fewer edge points than this are no pin shadow
+
+
 def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
           expected: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
@@ -333,11 +336,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     seeded = np.bincount(labels[strong], minlength=count) > 0
     good = seeded & (sizes >= config.pin_min_area_px)
     good[0] = False
-    mask = good[labels]
-    empty = np.zeros((0, 2))
-    if not mask.any():
-        return [empty, empty], mask, {"pins_found": 0}
-    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = _outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
@@ -348,11 +347,14 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     edges, normals, _, _ = _edges_along_normals(grad, points, normals, config.edge_search_px,
                                                 config.min_edge_strength)
     edges = edges + config.pin_edge_offset_px * normals
-    count, comp, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count > 2:
-        ys, xs = np.nonzero(mask)
-        top = np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2] + 1
-        bars, overlap = [_fit_bar(np.column_stack([xs, ys])[comp[ys, xs] == t].astype(float)) for t in top], "apart"
+    if len(edges) < _MIN_PIN_EDGES:
+        empty = np.zeros((0, 2))
+        return [empty, empty], mask, {"pins_found": 0}
+    ys, xs = np.nonzero(mask)
+    kept = np.bincount(labels[ys, xs], minlength=count)  # pixels of each shadow after the opening
+    if np.count_nonzero(kept) >= 2:
+        pixels = np.column_stack([xs, ys]).astype(float)
+        bars, overlap = [_fit_bar(pixels[labels[ys, xs] == t]) for t in np.argsort(kept)[::-1][:2]], "apart"
     else:
         bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
     bars = _order_pins(bars, config, expected)
@@ -466,7 +468,7 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     h, w = image.shape
     centre, radius, outside, sign = field_of_view(image, config.polarity)
     A = attenuation(image, outside, sign)
-    u, v = np.meshgrid(np.arange(w), np.arange(h))
+    u, v = np.arange(w)[None, :], np.arange(h)[:, None]
     r = np.hypot(u - centre[0], v - centre[1])
     valid = r < (radius if radius is not None else np.inf) - 2.0
     if radius is None:
