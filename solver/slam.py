@@ -88,6 +88,7 @@ class SolverConfig:
     min_pin_points: int = 20
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
     max_silhouette_median_px: float = 2.5  # a model's outline this far off its contour: no fit
+    max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     global_search: bool = True  # restart from a global set-up search when the solve goes astray
     method: str = "slam"  # one of METHODS
@@ -301,6 +302,11 @@ class _Schedule:
         if method.startswith("backprojection"):
             return self.back_projection(state, split=method.endswith("split"))
         state = self.views_on_bone_silhouette(state)
+        astray = _outline_misfit(p, state, ("bone",), c.max_coarse_bone_median_px)
+        if astray is not None:
+            # Lost already: the caller may restart from a global search at once.
+            return state, p.silhouette_terms(("bone",), 1.0, tight), SolveReport(
+                False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])
         state = self.with_triangulated_pins(state)
         pins_options = c.fine if method == "projection-split" else c.coarse
         state, report = self.lm(p.silhouette_terms(PIN_LABELS, 1.0, tight), state,
@@ -386,14 +392,20 @@ def _contour_misfit(problem: JointProblem, state: State, rms: dict[str, float]) 
     if "E_rp" in rms and rms["E_rp"] * c.sigma_px > c.max_residual_rms_px:
         return (f"contours do not fit the models (re-projection RMS "
                 f"{rms['E_rp'] * c.sigma_px:.1f} px > {c.max_residual_rms_px:.1f} px)")
-    for term in problem.silhouette_terms(LABELS, 1.0, RobustLoss("l2")):
-        distances = np.abs(term.linearize(state, jacobians=False).residuals) * c.sigma_px
-        median_px = float(np.median(distances))
-        if median_px > c.max_silhouette_median_px:
+    return _outline_misfit(problem, state, LABELS, c.max_silhouette_median_px)
+
+
+def _outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...],
+                    limit_px: float) -> str | None:
+    """The first model of ``labels`` whose silhouette, traced at ``state``, lies further
+    than ``limit_px`` (median) from its observed contour in some view, said in words."""
+    for term in problem.silhouette_terms(labels, 1.0, RobustLoss("l2")):
+        distances = np.abs(term.linearize(state, jacobians=False).residuals)
+        median_px = float(np.median(distances)) * problem.config.sigma_px
+        if median_px > limit_px:
             label = "bone" if term.body is None else PIN_LABELS[term.body - problem.n_views]
             return (f"the {label} outline in view {problem.views[term.view].view_id} does not "
-                    f"lie on its contour (median distance {median_px:.1f} px > "
-                    f"{c.max_silhouette_median_px:.1f} px)")
+                    f"lie on its contour (median distance {median_px:.1f} px > {limit_px:.1f} px)")
     return None
 
 
