@@ -67,6 +67,12 @@ class Target:
     def port(self) -> int:
         return self.receiver.port
 
+    def quiet(self, timeout_s: float = 10.0) -> None:
+        """Wait until the server has closed every connection (it frees them asynchronously)."""
+        deadline = time.monotonic() + timeout_s
+        while self.receiver._server.open_connections and time.monotonic() < deadline:
+            time.sleep(0.02)
+
     def refusals(self) -> int:
         return sum(e["event"] in REFUSALS for e in read_audit(self.audit.path))
 
@@ -341,6 +347,7 @@ def admission(target: Target, count: int) -> Tally:
     """Wrong calling/called AE, a source address off the list, per-peer and association caps."""
     tally = Tally()
     for _ in range(max(1, count)):
+        target.quiet()
         before = target.refusals()
         for calling, called, source in (("INTRUDER", "SLAMTKA", None), ("CARM1", "OTHER", None),
                                         ("CARM1", "SLAMTKA", "127.0.0.66")):

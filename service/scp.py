@@ -151,7 +151,7 @@ class DicomReceiver:
         # Only a backstop: service.wire counts associations by caller, not sockets.
         ae.maximum_associations = config.max_connections
         ae.network_timeout = config.idle_timeout_s
-        ae.acse_timeout = config.idle_timeout_s
+        ae.acse_timeout = config.request_timeout_s  # also how long a refused request lingers
         ae.dimse_timeout = config.dimse_timeout_s
         ae.add_supported_context(Verification)
         for sop_class in STORAGE_SOP_CLASSES:
