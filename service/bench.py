@@ -21,12 +21,11 @@ from drivers.bench_link import add_link_bench
 from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
 from service.bench_service import add_service_bench_parser
+from service.bench_speed import add_speed_bench_parser
 from solver.plan import Plan
-from solver.simulate import SimulationConfig, simulate_case
+from solver.simulate import ROT_SD_PER_LEVEL_RAD, TRANS_SD_PER_LEVEL_MM, SimulationConfig, simulate_case
 from solver.slam import METHODS, SolverConfig, solve_joint
 
-ROT_SD_PER_LEVEL_RAD = 0.1
-TRANS_SD_PER_LEVEL_MM = 20.0
 SUCCESS_DEG = 1.0
 
 _worker_plan: Plan | None = None
@@ -42,10 +41,7 @@ def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None
 def _run_one(job: tuple[str, int, int, float]) -> dict:
     method, level, seed, noise_px = job
     plan = _worker_plan
-    config = SimulationConfig(noise_px=noise_px, seed=seed,
-                              init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
-                              init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level)
-    case = simulate_case(plan, config)
+    case = simulate_case(plan, SimulationConfig.at_level(level, seed, noise_px))
     start = time.perf_counter()
     outcome = solve_joint(plan, case.views, case.initial, SolverConfig(method=method))
     seconds = time.perf_counter() - start
@@ -169,5 +165,6 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_accuracy)
     add_link_bench(kinds)
     add_service_bench_parser(kinds)
+    add_speed_bench_parser(kinds)
     add_imaging_bench_parser(kinds)
     add_hardening_bench_parser(kinds)

@@ -34,8 +34,14 @@ def default_camera() -> Camera:
     return Camera.from_geometry(SOURCE_TO_DETECTOR_MM, DETECTOR_FIELD_MM, DETECTOR_PIXELS)
 
 
+ROT_SD_PER_LEVEL_RAD = 0.1
+TRANS_SD_PER_LEVEL_MM = 20.0
+
+
 @dataclass(frozen=True)
 class SimulationConfig:
+    """One simulated case; :meth:`at_level` gives the evaluation protocol's noise levels."""
+
     view_angles_deg: tuple[float, ...] = (-30.0, 30.0)  # about the leg axis, 0 = AP
     noise_px: float = 2.0
     init_rot_sd_rad: float = 0.1
@@ -45,6 +51,14 @@ class SimulationConfig:
     encoder_trans_sd_mm: float = 2.0
     outline_spacing_px: float = 1.0
     seed: int = 0
+
+    @staticmethod
+    def at_level(level: int, seed: int, noise_px: float = 2.0) -> SimulationConfig:
+        """Initial-state noise of level 1..5 of DESIGN.md section 5: rotations SD 0.1 rad x
+        level, translations (and every 3D edge point) SD 20 mm x level."""
+        return SimulationConfig(noise_px=noise_px, seed=seed,
+                                init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
+                                init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level)
 
 
 @dataclass

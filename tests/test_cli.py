@@ -75,3 +75,14 @@ def test_small_accuracy_study_writes_table_plot_and_per_run_figures(tmp_path):
     assert slam["converged"] == 2 and max(slam["ctr_abs_deg"] + slam["str_abs_deg"]) < 1.0
     assert "| slam | 1 |" in (out / "results.md").read_text()
     assert (out / "errors.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_speed_benchmark_reports_time_iterations_stages_and_memory(tmp_path):
+    out = tmp_path / "speed"
+    assert main(["bench", "speed", "--cases", "1", "--out", str(out)]) == 0
+    doc = json.loads((out / "speed.json").read_text())
+    (run,) = doc["runs"]
+    accepted = sum(stage["iterations"] for stage in run["stages"].values())  # callbacks
+    assert 0 < accepted <= run["iterations"]
+    assert "joint" in run["stages"] and doc["median_seconds"] > 0
+    assert 0 < doc["peak_allocated_mb_per_solve"] < doc["process_peak_rss_mb"]
