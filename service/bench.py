@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.bench_link import add_link_bench
+from service.bench_degenerate import add_degenerate_bench_parser
 from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
 from service.bench_service import add_service_bench_parser
@@ -166,5 +167,6 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     add_link_bench(kinds)
     add_service_bench_parser(kinds)
     add_speed_bench_parser(kinds)
+    add_degenerate_bench_parser(kinds)
     add_imaging_bench_parser(kinds)
     add_hardening_bench_parser(kinds)
