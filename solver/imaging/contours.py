@@ -436,10 +436,15 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarr
     points, normals = _outline_with_normals(bone, 30)
     edges, normals, strength, bend = _edges_along_normals(
         grad, points, normals, config.edge_search_px, config.min_edge_strength)
-    # Blur of the imaging chain (with our smoothing) from the image itself, and the outward
-    # shift that puts the steepest fall of a sqrt-onset profile back on the true outline.
+    # Blur of the imaging chain (with our smoothing) from the image itself. Two estimates of
+    # the outline are exact for a sqrt-onset profile: the steepest fall moved out by
+    # _SQRT_PEAK sigma, and this point's sharpest bend moved in by _SQRT_ONSET sigma. Where
+    # the profile departs from the model (a plateau seen edge-on rises more gently) their
+    # mean is closer to the outline than either (median, p95 and coverage on simulated frames).
     sigma = float(np.nanmedian(bend) / (_SQRT_PEAK + _SQRT_ONSET)) if np.any(np.isfinite(bend)) else 0.0
-    edges = edges + (_SQRT_PEAK * sigma + config.bone_edge_offset_px) * normals
+    from_bend = np.where(np.isfinite(bend), bend - _SQRT_ONSET * sigma, _SQRT_PEAK * sigma)
+    shift = 0.5 * (_SQRT_PEAK * sigma + from_bend) + config.bone_edge_offset_px
+    edges = edges + shift[:, None] * normals
     return edges, {"bone_mask_area_px": int(bone.sum()), "bone_candidates": len(points),
                    "edge_blur_sigma_px": sigma,
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
