@@ -11,6 +11,7 @@ import pydicom
 import pytest
 
 from pydicom.dataset import Dataset
+from pydicom.uid import ExplicitVRLittleEndian
 
 from service.frames import (
     ENHANCED_XA_IMAGE_STORAGE,
@@ -21,6 +22,7 @@ from service.frames import (
     decode_frame,
     encode_frame,
 )
+from service.scp import check_instance
 
 WHEN = datetime(2025, 3, 14, 9, 26, 53, 589793, tzinfo=timezone.utc)
 
@@ -132,6 +134,11 @@ def test_enhanced_xa_decodes_its_first_frame_with_the_geometry_of_its_functional
     assert (back.sid_mm, back.sod_mm) == (1000.0, 620.0)
     assert back.acquisition_datetime == WHEN and back.laterality == "R"
     assert (back.sop_class_uid, back.modality, back.bits_stored) == (ENHANCED_XA_IMAGE_STORAGE, "XA", 12)
+
+
+def test_the_receiver_accepts_an_enhanced_xa_instance():
+    ds = _enhanced_xa(_frame())
+    assert check_instance(ds, ENHANCED_XA_IMAGE_STORAGE, ExplicitVRLittleEndian, ds.SOPInstanceUID) is None
 
 
 def test_enhanced_xa_per_frame_groups_override_shared_and_top_level():
