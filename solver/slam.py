@@ -48,6 +48,9 @@ from .setup_search import search_setup
 from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
+# Coarse ray search in seat_on_rays: steps this many times the fine step.
+_SEAT_COARSE = 4
+
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 
 # The proposed method, the same without the encoder odometry factor, and the paper's four
@@ -133,25 +136,37 @@ def seat_on_rays(
 ) -> np.ndarray:
     """Body-frame 3D points on the rays of ``pixels`` where each ray grazes the model.
 
-    Samples each ray over the model's depth range and keeps the sample of smallest absolute
-    signed distance: the tangent point for a ray that grazes, the closest approach for one
-    that misses.
+    Each ray's point is where the model's signed distance along it is least: the tangent
+    point of a ray that grazes, the deepest point of one that just cuts in (so noise on
+    either side of the outline is charged alike), the closest approach of one that misses.
+    The ray is searched over the model's depth range at ``_SEAT_COARSE`` steps, then at
+    ``step_mm`` around the best, then refined to the vertex of a parabola.
     """
     corners = np.array(np.meshgrid(*model.sdf.bounds().T, indexing="ij")).reshape(3, -1).T
-    depth = T_cam_body.apply(corners)[:, 2]
-    z = np.arange(max(depth.min(), 10.0), depth.max() + step_mm, step_mm)
+    near_far = T_cam_body.apply(corners)[:, 2]
     rays = camera.rays(pixels)
     rays = rays / rays[:, 2:3]  # unit depth
     T_body_cam = T_cam_body.inverse()
-    samples = (rays[:, None, :] * z[None, :, None]).reshape(-1, 3)
-    d = model.sdf.query(T_body_cam.apply(samples))[0].reshape(len(pixels), len(z))
-    best = np.clip(np.argmin(d, axis=1), 1, len(z) - 2)
+
+    def distances(z: np.ndarray) -> np.ndarray:
+        """Signed distances (rays, samples) at depths ``z`` (samples,) or (rays, samples)."""
+        z = np.broadcast_to(z, (len(rays), z.shape[-1]))
+        samples = (rays[:, None, :] * z[:, :, None]).reshape(-1, 3)
+        return model.sdf.query(T_body_cam.apply(samples))[0].reshape(z.shape)
+
+    coarse_step = _SEAT_COARSE * step_mm
+    z = np.arange(max(near_far.min(), 10.0), near_far.max() + coarse_step, coarse_step)
+    around = z[np.argmin(distances(z), axis=1)]
+    offsets = np.arange(-_SEAT_COARSE, _SEAT_COARSE + 1) * step_mm
+    z_fine = around[:, None] + offsets[None, :]
+    d = distances(z_fine)
+    best = np.clip(np.argmin(d, axis=1), 1, len(offsets) - 2)
     # Near a grazing point the distance along the ray is a parabola: refine to its vertex.
     rows = np.arange(len(pixels))
     d_minus, d_0, d_plus = d[rows, best - 1], d[rows, best], d[rows, best + 1]
     curvature = d_plus - 2.0 * d_0 + d_minus
     shift = np.where(curvature > 1e-9, 0.5 * (d_minus - d_plus) / np.maximum(curvature, 1e-9), 0.0)
-    depth = z[best] + np.clip(shift, -1.0, 1.0) * step_mm
+    depth = z_fine[rows, best] + np.clip(shift, -1.0, 1.0) * step_mm
     return T_body_cam.apply(rays * depth[:, None])
 
 

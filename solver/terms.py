@@ -35,14 +35,19 @@ __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "Rel
 
 
 def posed_in_camera(
-    state: State, view: int, body: int | None, X: np.ndarray
+    state: State, view: int, body: int | None, X: np.ndarray, jacobians: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """Camera-frame positions of body-frame points and their Jacobians.
 
     Returns ``p_cam`` (N, 3), ``d p_cam / d xi_view`` (N, 3, 6), ``d p_cam / d xi_body``
     (N, 3, 6) or None for the bone, and ``d p_cam / d X`` (3, 3) (shared by all points).
+    Without ``jacobians`` (trial steps: half of all evaluations) only ``p_cam`` is computed
+    and the rest is None.
     """
     T_view = state.poses[view]
+    if not jacobians:
+        T = T_view if body is None else T_view @ state.poses[body]
+        return T.apply(X), None, None, None
     if body is None:
         p_tibia, J_body, R_chain = X, None, T_view.R
     else:
@@ -81,8 +86,9 @@ class ReprojectionTerm:
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         X = state.points[self.point_ids]
-        p_cam, J_view, J_body, R_chain = posed_in_camera(state, self.view, self.body, X)
-        uv, J_proj = self.camera.project_with_jacobian(p_cam)
+        p_cam, J_view, J_body, R_chain = posed_in_camera(state, self.view, self.body, X, jacobians)
+        uv, J_proj = (self.camera.project_with_jacobian(p_cam) if jacobians
+                      else (self.camera.project(p_cam), None))
         r = (uv - self.pixels) / self.sigma_px
         if not jacobians:
             return Linearization(r)
@@ -158,8 +164,9 @@ class ModelProjectionTerm:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)
             return Linearization(r)
-        p_cam, J_view, J_body, _ = posed_in_camera(state, self.view, self.body, S)
-        uv, J_proj = self.camera.project_with_jacobian(p_cam)
+        p_cam, J_view, J_body, _ = posed_in_camera(state, self.view, self.body, S, jacobians)
+        uv, J_proj = (self.camera.project_with_jacobian(p_cam) if jacobians
+                      else (self.camera.project(p_cam), None))
         dist, grad = self.distance_map.query(uv)
         nearest_dist, nearest = cKDTree(uv).query(self.observed)
         r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px
