@@ -18,11 +18,14 @@ import trimesh
 from .camera import Camera
 from .geometry import Pose
 
-__all__ = ["ContourGenerator"]
+__all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
 
 # Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution; cv2.fillPoly's shift
 # keeps _SUBPIXEL_BITS of sub-pixel precision in the vertex coordinates.
 _MASK_DOWNSCALE = 4
+# The interior mask is eroded by one mask pixel, so it stays valid while the model moves by
+# less than half of that in the image (see ContourGenerator.interior).
+INTERIOR_REUSE_PX = _MASK_DOWNSCALE / 2
 _SUBPIXEL_BITS = 4
 
 
@@ -64,6 +67,14 @@ class ContourGenerator:
         cv2.fillPoly(mask, list(pts.reshape(-1, 3, 1, 2)), 1, lineType=cv2.LINE_8,
                      shift=_SUBPIXEL_BITS)
         return mask
+
+    def image_motion_px(self, T_a: Pose, T_b: Pose, camera: Camera) -> float:
+        """Largest image displacement of the model's bounding-box corners between two poses:
+        a bound on how far any of its points moved in the image."""
+        corners = np.array(np.meshgrid(*np.array([self.vertices.min(0), self.vertices.max(0)]).T,
+                                       indexing="ij")).reshape(3, -1).T
+        uv_a, uv_b = camera.project(T_a.apply(corners)), camera.project(T_b.apply(corners))
+        return float(np.max(np.linalg.norm(uv_a - uv_b, axis=1)))
 
     def interior(self, T_cam_model: Pose, camera: Camera) -> np.ndarray:
         """Mask (1/4 resolution) of the footprint's interior, more than a mask pixel deep.

@@ -27,7 +27,7 @@ from .camera import Camera
 from .geometry import Pose, hat, so3_log
 from .observations import DistanceMap
 from .optimizer import Linearization, RobustLoss, State
-from .silhouette import ContourGenerator
+from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
 from .sdf import SignedDistanceField
 
 __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
@@ -150,15 +150,27 @@ class ModelProjectionTerm:
     loss: RobustLoss = RobustLoss("cauchy", 3.0)
     freeze_outline: bool = False
     _outline: np.ndarray | None = field(default=None, init=False, repr=False)
+    _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
 
     def _T_cam_body(self, state: State):
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
+    def _trace(self, T_cam_body: Pose) -> np.ndarray:
+        """Model-frame outline points; the footprint interior that tells the outer outline
+        from interior folds is rasterised again only once the model has moved enough."""
+        interior = None
+        if self.outer_only:
+            if self._interior is None or self.contour.image_motion_px(
+                    self._interior[0], T_cam_body, self.camera) > INTERIOR_REUSE_PX:
+                self._interior = (T_cam_body, self.contour.interior(T_cam_body, self.camera))
+            interior = self._interior[1]
+        return self.contour.outline_points(T_cam_body, self.camera, self.spacing_px,
+                                           outer_only=self.outer_only, interior=interior)
+
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         if self._outline is None or (jacobians and not self.freeze_outline):
-            self._outline = self.contour.outline_points(
-                self._T_cam_body(state), self.camera, self.spacing_px, outer_only=self.outer_only)
+            self._outline = self._trace(self._T_cam_body(state))
         S = self._outline
         if len(S) == 0:
             # Nothing of the model is in view: every observed pixel is unexplained.
