@@ -89,8 +89,9 @@ def _summary(doc: dict) -> str:
         ]
     s = doc["solver"]
     rms = ", ".join(f"{k} {v:.2f}" for k, v in s["residual_rms_sigma"].items())
-    lines.append(f"  solver: {s['iterations']} iterations, {s['seconds']:.2f} s, "
-                 f"{s['convergence_reason']}; residual RMS (sigmas): {rms or 'n/a'}")
+    lines.append(f"  solver ({s['method']}, started from the {s['start']}): {s['iterations']} "
+                 f"iterations, {s['seconds']:.2f} s, {s['convergence_reason']}; residual RMS "
+                 f"(sigmas): {rms or 'n/a'}")
     return "\n".join(lines)
 
 
