@@ -86,6 +86,15 @@ class Pose:
         object.__setattr__(self, "t", t)
 
     @staticmethod
+    def _composed(R: np.ndarray, t: np.ndarray) -> Pose:
+        """A pose from a rotation that is proper by construction (a product, transpose or
+        exponential of proper rotations): skips the check, which hot loops cannot afford."""
+        pose = object.__new__(Pose)
+        object.__setattr__(pose, "R", R)
+        object.__setattr__(pose, "t", t)
+        return pose
+
+    @staticmethod
     def identity() -> Pose:
         return Pose(np.eye(3), np.zeros(3))
 
@@ -110,15 +119,15 @@ class Pose:
         return np.asarray(vectors, dtype=float) @ self.R.T
 
     def inverse(self) -> Pose:
-        return Pose(self.R.T, -self.R.T @ self.t)
+        return Pose._composed(self.R.T, -self.R.T @ self.t)
 
     def __matmul__(self, other: Pose) -> Pose:
-        return Pose(self.R @ other.R, self.R @ other.t + self.t)
+        return Pose._composed(self.R @ other.R, self.R @ other.t + self.t)
 
     def retract(self, xi: np.ndarray) -> Pose:
         """``T * Exp(xi)`` for a right increment ``xi = (rho, phi)`` in the source frame."""
-        xi = np.asarray(xi, dtype=float)
-        return Pose(self.R @ so3_exp(xi[3:]), self.R @ xi[:3] + self.t)
+        xi = np.asarray(xi, dtype=float).reshape(6)
+        return Pose._composed(self.R @ so3_exp(xi[3:]), self.R @ xi[:3] + self.t)
 
     def local(self, other: Pose) -> np.ndarray:
         """The increment ``xi`` with ``self.retract(xi) == other`` (inverse of retract)."""
