@@ -69,6 +69,7 @@ class ContourConfig:
     edge_search_px: float = 6.0  # half-length of the search for the edge along the normal
     min_edge_strength: float = 0.015  # attenuation drop per pixel at an accepted edge
     bone_edge_offset_px: float = 0.0  # outward shift of bone edges (blur bias of a site)
+    bone_reach_in_px: float = 2.0  # further inward search: a gentle edge leaves the mask outside it
     pin_threshold: float = 0.8  # attenuation of steel over its 100-px median background
     pin_min_area_px: int = 80
     pin_edge_offset_px: float = 0.0
@@ -88,6 +89,8 @@ class ContourConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.bone_reach_in_px < 0:
+            raise ValueError(f"bone_reach_in_px must not be negative, got {self.bone_reach_in_px}")
 
     @staticmethod
     def load(path: str | Path) -> ContourConfig:
@@ -155,8 +158,10 @@ _SQRT_PEAK, _SQRT_ONSET = 0.765, 0.551
 
 def _edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray,
                          normals: np.ndarray, search: float, min_strength: float,
+                         search_in: float | None = None,
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Along each outward normal, where the image falls fastest within ``search`` px.
+    """Along each outward normal, where the image falls fastest within ``search_in`` (default
+    ``search``) px inwards and ``search`` px outwards.
 
     Returns the sub-pixel edge positions, their normals, the fall per pixel there, and the
     distance from the steepest fall out to the sharpest bend of the profile (NaN when not
@@ -166,7 +171,7 @@ def _edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray
     if len(points) == 0:
         return empty, empty, np.zeros(0), np.zeros(0)
     step = 0.25
-    s = np.arange(-search, search + step / 2, step)
+    s = np.arange(-(search if search_in is None else search_in), search + step / 2, step)
     samples = points[:, None, :] + s[None, :, None] * normals[:, None, :]
     map_u, map_v = samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32)
     gx = cv2.remap(grad[0], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
@@ -435,7 +440,8 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, pins: np.ndarr
     bone = fill_holes(bone, config.min_bone_area_px)
     points, normals = _outline_with_normals(bone, 30)
     edges, normals, strength, bend = _edges_along_normals(
-        grad, points, normals, config.edge_search_px, config.min_edge_strength)
+        grad, points, normals, config.edge_search_px, config.min_edge_strength,
+        config.edge_search_px + config.bone_reach_in_px)
     # Blur of the imaging chain (with our smoothing) from the image itself. Two estimates of
     # the outline are exact for a sqrt-onset profile: the steepest fall moved out by
     # _SQRT_PEAK sigma, and this point's sharpest bend moved in by _SQRT_ONSET sigma. Where
