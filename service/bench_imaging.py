@@ -35,15 +35,20 @@ from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
 from solver.imaging.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
 from solver.observations import ViewObservation
 from solver.plan import Plan
-from solver.simulate import DETECTOR_FIELD_MM, SimulationConfig, default_camera, simulate_case
+from solver.simulate import (
+    DETECTOR_FIELD_MM,
+    ROT_SD_PER_LEVEL_RAD,
+    TRANS_SD_PER_LEVEL_MM,
+    SimulationConfig,
+    default_camera,
+    simulate_case,
+)
 from solver.slam import SolverConfig, solve_joint
 
 __all__ = ["contour_scores", "residual_distortion_px", "add_imaging_bench_parser", "run_imaging"]
 
 Result = TypeVar("Result")
 
-ROT_SD_PER_LEVEL_RAD = 0.1
-TRANS_SD_PER_LEVEL_MM = 20.0
 COVERED_PX = 2.0
 PIN_SHADOW_PX = 16.0  # true bone outline this close to a pin's outline lies in its shadow
 PIN_FOUND_PX = 2.0
@@ -157,8 +162,7 @@ def run_imaging(args: argparse.Namespace) -> int:
             pins_ok.append(scores["pins_labelled"])
             raw.append((radiograph, found))
         for level in args.levels:
-            case = simulate_case(plan, SimulationConfig(seed=seed, init_rot_sd_rad=ROT_SD_PER_LEVEL_RAD * level,
-                                                        init_trans_sd_mm=TRANS_SD_PER_LEVEL_MM * level))
+            case = simulate_case(plan, SimulationConfig.at_level(level, seed))
             views = [ViewObservation(v.view_id, camera, {label: r.distortion.undistort(points) if len(points)
                                                          else points for label, points in f.as_dict().items()})
                      for v, (r, f) in zip(case.views, raw)]
