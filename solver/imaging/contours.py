@@ -265,6 +265,9 @@ def _bar_from_edges(s: np.ndarray, o: np.ndarray, top: np.ndarray, span: tuple[f
                 0.5 * float(np.polyval(lines[0], mid) - np.polyval(lines[1], mid)))
 
 
+_LENGTH_SHARE = 0.9  # of the other pin's length, where a pin's hidden end is inferred from it
+
+
 def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tuple[list[_Bar], str]:
     """Two bars in one shadow where the pins overlap, and how they overlap.
 
@@ -273,7 +276,11 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     staggered along their common axis and offset across it; each long side of the union
     then steps once from one pin's edge to the other's, at the two ends of the overlap. The
     pin holding one end of the union reaches to the farther step, the other from the nearer
-    step to the other end. A side without a step is shared by both pins over their spans.
+    step to the other end. Where only one side steps, the pin that is outward there holds it
+    over the overlap, so the step is where the other pin ends or the outward one begins; the
+    overlap's other end follows from the two pins' equal projected length (one model,
+    parallel), kept ``_LENGTH_SHARE`` short of it for the few per cent the two differ.
+    A side without a step is shared by both pins over their spans.
     """
     centre = edges.mean(axis=0)
     _, vectors = np.linalg.eigh(np.cov((edges - centre).T))
@@ -285,18 +292,28 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     ends = (s.min(), s.max())
     sides = long & (s > ends[0] + width) & (s < ends[1] - width)
     top = facing > 0
-    steps = []
-    for side in (sides & top, sides & ~top):
+    steps, outward = [], []
+    for sign, side in ((1.0, sides & top), (-1.0, sides & ~top)):
         order = np.argsort(s[side])
         found = _line_step(s[side][order], o[side][order], max(5, int(width)))
-        steps.append(found[0] if found is not None and abs(found[1]) >= min_step else None)
+        seen = found is not None and abs(found[1]) >= min_step
+        steps.append(found[0] if seen else None)
+        outward.append(sign * found[1] if seen else 0.0)
     overlap = "staggered"
     if steps == [None, None]:
         # The edges coincide. Two pins of one model project to nearly equal lengths, so the
         # middle of the union lies in their overlap: each pin owns the half beyond it.
         steps, overlap = [0.5 * (ends[0] + ends[1])] * 2, "coincident"
-    at = [b for b in steps if b is not None]
-    spans = ((ends[0], max(at)), (min(at), ends[1]))
+        spans = ((ends[0], steps[0]), (steps[0], ends[1]))
+    elif None in steps:
+        k = 0 if steps[0] is not None else 1
+        at = steps[k]
+        if outward[k] > 0:  # the second pin is outward: it begins here
+            spans = ((ends[0], max(at, ends[0] + _LENGTH_SHARE * (ends[1] - at))), (at, ends[1]))
+        else:  # the first pin is outward: it ends here
+            spans = ((ends[0], at), (min(at, ends[1] - _LENGTH_SHARE * (at - ends[0])), ends[1]))
+    else:
+        spans = ((ends[0], max(steps)), (min(steps), ends[1]))
     # On a side with a step a pin owns its part of that side; without one, the two pins'
     # edges coincide there and each owns the side over its span.
     mine = []
