@@ -42,7 +42,7 @@ class SetupSearch:
     coarse_half_range_deg: float = 30.0
     coarse_step_deg: float = 15.0
     refinements: int = 2  # 3x3x3 grids around the best so far, each at half the step
-    search_px: int = 400  # largest image shift considered, full-resolution pixels
+    search_px: int = 800  # largest image shift considered, full-resolution pixels
     truncate_px: float = 40.0
     spacing_px: float = 6.0
     downscale: int = 8
@@ -135,25 +135,31 @@ def search_setup(
             shifts.append(shift)
         return total, shifts
 
-    def triangulated(C: Pose, shifts: list[np.ndarray]) -> Pose:
-        """``C`` followed by the translation that puts the knee centre where it is seen."""
+    def knee_seen_at(C: Pose, pixels: list[np.ndarray]) -> Pose:
+        """``C`` followed by the translation that puts the knee centre where the views see
+        it (one pixel per view), by triangulating those pixels' rays."""
         origins, directions = [], []
-        for (T, camera, _, _), shift in zip(views, shifts):
-            T_c = T @ C
-            seen_at = camera.project(T_c.apply(knee[None]))[0] + shift
-            T_tibia_cam = T_c.inverse()
+        for (T, camera, _, _), pixel in zip(views, pixels):
+            T_tibia_cam = (T @ C).inverse()
             origins.append(T_tibia_cam.t)
-            directions.append(T_tibia_cam.rotate(camera.rays(seen_at[None])[0]))
+            directions.append(T_tibia_cam.rotate(camera.rays(pixel[None])[0]))
         knee_seen, _ = triangulate_rays(np.array(origins), np.array(directions))
         return C @ Pose(np.eye(3), knee_seen - knee)
 
-    # Depth first (a wrong depth scales the outline, which no rotation explains), then the
+    def shifted(C: Pose, shifts: list[np.ndarray]) -> Pose:
+        """``C`` with the translation that carries out each view's best image shift."""
+        return knee_seen_at(C, [camera.project((T @ C).apply(knee[None]))[0] + shift
+                                for (T, camera, _, _), shift in zip(views, shifts)])
+
+    # The knee first where the contours are (the C-arm is aimed at it; the guess may be far
+    # enough off to leave the bone out of the image), then the depth from the views' best
+    # shifts (a wrong depth scales the outline, which no rotation explains), then the
     # rotation on a coarse grid and finer ones, the translation re-triangulated after each.
-    translation = Pose.identity()
+    translation = knee_seen_at(Pose.identity(), [observed.mean(axis=0) for *_, observed in views])
     score, shifts = evaluate(np.zeros(3), translation)
     if not np.isfinite(score):
         return Pose.identity()
-    translation = triangulated(Pose.identity(), shifts)
+    translation = shifted(translation, shifts)
     best_rotvec = np.zeros(3)
     steps = [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]
     for grid in [(search.coarse_half_range_deg, search.coarse_step_deg)] + [(h, h) for h in steps]:
@@ -164,5 +170,5 @@ def search_setup(
                 best = (score, rotvec, shifts)
         _, best_rotvec, shifts = best
         C = correction(best_rotvec) @ translation
-        translation = translation @ (C.inverse() @ triangulated(C, shifts))
+        translation = translation @ (C.inverse() @ shifted(C, shifts))
     return correction(best_rotvec) @ translation

@@ -44,7 +44,7 @@ from .optimizer import (
     pose_covariance,
 )
 from .plan import Plan, RigidModel
-from .setup_search import search_setup
+from .setup_search import SetupSearch, search_setup
 from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
@@ -94,6 +94,9 @@ class SolverConfig:
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     global_search: bool = True  # restart from a global set-up search when the solve goes astray
+    # ... first within +-30 deg of the encoders' guess, then, if that fails too, +-60 deg.
+    global_searches: tuple[SetupSearch, ...] = (
+        SetupSearch(), SetupSearch(coarse_half_range_deg=60.0, coarse_step_deg=20.0, refinements=3))
     method: str = "slam"  # one of METHODS
 
     def __post_init__(self) -> None:
@@ -435,7 +438,8 @@ def solve_joint(
 
     The solve starts from the encoders' guess. If it ends in a wrong basin (the outlines do
     not fit, or it does not converge), the patient set-up error is searched for globally
-    (:mod:`solver.setup_search`) and the solve is run again from there."""
+    (:mod:`solver.setup_search`), over wider ranges in turn, and the solve is run again from
+    there."""
     start = time.perf_counter()
     problem = JointProblem(plan, views, config)
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
@@ -443,18 +447,20 @@ def solve_joint(
     if refusal is not None:
         return _refused(problem, refusal, None, None, {}, start, poses)
     outcome = _solve_from(problem, initial, poses, callback, start)
-    if outcome.status == "measured" or not config.global_search or not _wrong_basin(outcome):
-        return outcome
-    correction = search_setup(
-        problem.bone.coarse_contour,
-        [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
-         for T, view in zip(initial.T_cam_tibia, views)],
-        plan.landmarks.T_tibia_anat())
-    searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-    retry = _solve_from(problem, initial, searched, callback, start)
-    retry.initialisation = "global set-up search"
-    retry.iterations += outcome.iterations
-    return retry
+    iterations = outcome.iterations
+    observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
+                for T, view in zip(initial.T_cam_tibia, views)]
+    for search in (config.global_searches if config.global_search else ()):
+        if outcome.status == "measured" or not _wrong_basin(outcome):
+            break
+        correction = search_setup(problem.bone.coarse_contour, observed,
+                                  plan.landmarks.T_tibia_anat(), search)
+        searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+        outcome = _solve_from(problem, initial, searched, callback, start)
+        outcome.initialisation = "global set-up search"
+        iterations += outcome.iterations
+        outcome.iterations = iterations
+    return outcome
 
 
 def _wrong_basin(outcome: SolveOutcome) -> bool:
