@@ -6,12 +6,16 @@ tibia frame, pin points in their pin's frame). The schedule:
 
 1. each view's bone found in its image by an exhaustive shift/rotation search;
 2. silhouettes alone (E_mp, poses only): the views on the bone (annealed robust scale,
-   tied together by the encoders' relative motion E_odo), the pins triangulated from their
-   contours and refined, then every silhouette at once;
+   tied together by the encoders' relative motion E_odo) — a bone still off its contours
+   here means the start was too far, and the solve stops; the pins triangulated from the
+   ends of their contours and refined; then every silhouette at once;
 3. edge points seated on their observed rays where each ray grazes its model;
 4. joint Levenberg-Marquardt on ``w_rp E_rp + w_bp E_bp + w_mp E_mp (+ E_odo)``, with the
    silhouettes traced once at its start (the problem is then smooth);
 5. quality gates, the resection plane, and its covariance-based uncertainty.
+
+A solve that went astray (stopped at step 2, did not converge, or whose outlines do not
+fit) is run again from a global search of the patient set-up (:mod:`.setup_search`).
 
 A pin's roll about its own axis is unobservable (a cylinder), so that direction is fixed.
 
@@ -48,10 +52,10 @@ from .setup_search import SetupSearch, search_setup
 from .triangulation import PinSighting, triangulate_pin
 from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
+__all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
+
 # Coarse ray search in seat_on_rays: steps this many times the fine step.
 _SEAT_COARSE = 4
-
-__all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 
 # The proposed method, the same without the encoder odometry factor, and the paper's four
 # baselines: model projection only (E_mp) or contour back-projection only (E_rp + E_bp), each
@@ -93,8 +97,8 @@ class SolverConfig:
     max_silhouette_median_px: float = 2.5  # a model's outline this far off its contour: no fit
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
-    global_search: bool = True  # restart from a global set-up search when the solve goes astray
-    # ... first within +-30 deg of the encoders' guess, then, if that fails too, +-60 deg.
+    # Restarts from a global set-up search when the solve goes astray (none: no restart):
+    # first within +-30 deg of the encoders' guess, then, if that fails too, +-60 deg.
     global_searches: tuple[SetupSearch, ...] = (
         SetupSearch(), SetupSearch(coarse_half_range_deg=60.0, coarse_step_deg=20.0, refinements=3))
     method: str = "slam"  # one of METHODS
@@ -450,7 +454,7 @@ def solve_joint(
     iterations = outcome.iterations
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
                 for T, view in zip(initial.T_cam_tibia, views)]
-    for search in (config.global_searches if config.global_search else ()):
+    for search in config.global_searches:
         if outcome.status == "measured" or not _wrong_basin(outcome):
             break
         correction = search_setup(problem.bone.coarse_contour, observed,
