@@ -6,7 +6,8 @@ a refusal that was not audited, a hang, a server that stopped serving, memory gr
 256 MB or more, or (fuzzing) anything in the spool that does not pass validation again.
 The tests run every item with small counts; the command runs the large ones and writes
 ``hardening.json``. Attackers use other loopback addresses (127.0.0.2 ...) than the C-arm
-(127.0.0.1), as other hosts would.
+(127.0.0.1), as other hosts would. The crash, fault and soak items run the whole service
+as its own process (:mod:`service.bench_faults`).
 """
 
 from __future__ import annotations
@@ -498,38 +499,49 @@ ITEMS = ("uids", "truncation", "pixel_length", "element_length", "nesting", "def
          "disk_full")
 
 
-def run_items(root: Path, counts: dict[str, int], bound_s: float = 2.0,
-              log: Callable[[str], None] = lambda _: None) -> dict[str, dict]:
-    """Run each item in ``counts`` against a fresh receiver under ``root``."""
+def _receiver_item(name: str, folder: Path, count: int, bound_s: float) -> Tally:
+    """One receiver item against a fresh :class:`Target` in ``folder``."""
     simple = {"uids": uids, "truncation": truncation, "pixel_length": pixel_length,
               "element_length": element_length, "nesting": nesting, "deflate": deflate,
               "oversize": oversize, "fuzz_datasets": fuzz_datasets, "fuzz_protocol": fuzz_protocol,
               "disk_full": disk_full}
+    dicom: dict = {}
+    if name == "admission":
+        dicom = {"allowed_source_addresses": ["127.0.0.1", "127.0.0.3"],
+                 "max_connections_per_peer": 4, "max_associations": 2}
+    if name == "tls":
+        pki = make_pki(folder / "pki")
+        dicom = {"tls": {"enabled": True, "certificate": str(pki["server_cert"]),
+                         "private_key": str(pki["server_key"]), "ca_certificates": str(pki["ca"])}}
+    target = Target(folder, dicom)
+    try:
+        if name == "tls":
+            return tls_matrix(target, count, pki)
+        if name == "admission":
+            return admission(target, count)
+        if name == "idle_flood":
+            return idle_flood(target, count, bound_s=bound_s)
+        return simple[name](target, count)
+    finally:
+        target.stop()
+
+
+def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
+              log: Callable[[str], None] = lambda _: None) -> dict[str, dict]:
+    """Run each item in ``counts`` in its own folder under ``root``: the receiver items
+    against a fresh receiver, the fault items (:mod:`service.bench_faults`) against the
+    whole service."""
+    from .bench_faults import FAULT_ITEMS, run_fault_item  # it builds on this module
+
     results = {}
     for name, count in counts.items():
         folder = root / name
         folder.mkdir(parents=True, exist_ok=True)
-        dicom: dict = {}
-        if name == "admission":
-            dicom = {"allowed_source_addresses": ["127.0.0.1", "127.0.0.3"],
-                     "max_connections_per_peer": 4, "max_associations": 2}
-        if name == "tls":
-            pki = make_pki(folder / "pki")
-            dicom = {"tls": {"enabled": True, "certificate": str(pki["server_cert"]),
-                             "private_key": str(pki["server_key"]), "ca_certificates": str(pki["ca"])}}
         started = time.perf_counter()
-        target = Target(folder, dicom)
-        try:
-            if name == "tls":
-                tally = tls_matrix(target, count, pki)
-            elif name == "admission":
-                tally = admission(target, count)
-            elif name == "idle_flood":
-                tally = idle_flood(target, count, bound_s=bound_s)
-            else:
-                tally = simple[name](target, count)
-        finally:
-            target.stop()
+        if name in FAULT_ITEMS or name == "soak":
+            tally = run_fault_item(name, folder, count)
+        else:
+            tally = _receiver_item(name, folder, int(count), bound_s)
         results[name] = {"tried": tally.tried, "failures": tally.failures, **tally.notes,
                          "seconds": round(time.perf_counter() - started, 1)}
         log(f"{name:15s} tried {tally.tried:7d}  failures {tally.failures}")
@@ -538,13 +550,18 @@ def run_items(root: Path, counts: dict[str, int], bound_s: float = 2.0,
 
 _LARGE = {"uids": 200, "truncation": 400, "pixel_length": 20, "element_length": 20,
           "nesting": 3, "deflate": 4, "oversize": 4, "fuzz_datasets": 100000,
-          "fuzz_protocol": 10000, "admission": 5, "tls": 5, "idle_flood": 40, "disk_full": 5}
+          "fuzz_protocol": 10000, "admission": 5, "tls": 5, "idle_flood": 40, "disk_full": 5,
+          "crash": 1000, "destination_down": 20, "serial_faults": 6}
 
 
 def run_hardening_bench(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    counts = {k: v for k, v in _LARGE.items() if not args.only or k in args.only}
+    everything = not args.only and args.soak is None
+    counts: dict[str, float] = {k: v for k, v in _LARGE.items()
+                                if everything or k in (args.only or ())}
+    if args.soak is not None:
+        counts["soak"] = args.soak
     if args.fuzz is not None:
         counts.update({k: args.fuzz for k in ("fuzz_datasets",) if k in counts})
     # tmpfs if there is one: the audit log fsyncs every refusal, 100,000 times
@@ -559,8 +576,15 @@ def run_hardening_bench(args: argparse.Namespace) -> int:
 
 
 def add_hardening_bench_parser(kinds: argparse._SubParsersAction) -> None:
-    p = kinds.add_parser("hardening", help="hostile DICOM, admission, TLS, floods, disk full")
+    from .bench_faults import FAULT_ITEMS
+
+    p = kinds.add_parser("hardening", help="hostile DICOM, admission, TLS, floods, disk full, "
+                                                "crashes, faults, soak")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--only", type=lambda s: s.split(","), help=f"items (of {', '.join(ITEMS)})")
+    p.add_argument("--only", type=lambda s: s.split(","),
+                   help=f"items (of {', '.join(ITEMS + FAULT_ITEMS)})")
     p.add_argument("--fuzz", type=int, help="mutation-fuzzed datasets (default 100000)")
+    p.add_argument("--soak", type=float, metavar="MINUTES",
+                   help="soak the service: a frame a second, a malformed input a minute (only "
+                        "this, and the --only items)")
     p.set_defaults(func=run_hardening_bench)

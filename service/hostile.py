@@ -23,9 +23,9 @@ from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, generate
 
 from .frames import XA_IMAGE_STORAGE, Frame, encode_frame
 
-__all__ = ["RawAssociation", "Dropped", "frame_dataset_bytes", "uid_cases", "truncations",
-           "pixel_length_cases", "element_length_cases", "nested_sequence", "deflate_bomb",
-           "mutations", "malformed_pdus", "associate_rq", "pdata", "DEFLATED"]
+__all__ = ["RawAssociation", "Dropped", "frame_dataset_bytes", "dataset_bytes", "uid_cases",
+           "truncations", "pixel_length_cases", "element_length_cases", "nested_sequence",
+           "deflate_bomb", "mutations", "malformed_pdus", "associate_rq", "pdata", "DEFLATED"]
 
 DEFLATED = "1.2.840.10008.1.2.1.99"
 _APPLICATION_CONTEXT = b"1.2.840.10008.3.1.1.1"
@@ -216,12 +216,17 @@ def frame_dataset_bytes(seed: int = 0, size: int = 32, explicit: bool = True,
                   secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
                   acquisition_datetime=dt.datetime.now(dt.timezone.utc), patient_id="P-1",
                   laterality="R", bits_stored=12, sop_instance_uid=uid)
+    return dataset_bytes(frame, explicit), uid
+
+
+def dataset_bytes(frame: Frame, explicit: bool = True) -> bytes:
+    """``frame`` encoded as a C-STORE carries it: the dataset without file meta."""
     ds = encode_frame(frame)
     del ds.file_meta
     buffer = DicomBytesIO()
     buffer.is_little_endian, buffer.is_implicit_VR = True, not explicit
     write_dataset(buffer, ds)
-    return buffer.getvalue(), uid
+    return buffer.getvalue()
 
 
 def _pixel_header_offset(data: bytes, explicit: bool) -> int:

@@ -8,7 +8,9 @@ against the published schema, a Comprehensive 3D SR and one Secondary Capture pe
 
 A run writes ``output/<case>/<run>/`` (every file crash-safely) and ``result.json`` last: a
 run whose ``result.json`` exists is complete and never repeated (idempotent by the SOP
-Instance UIDs it uses); one cut short by a crash is run again after the restart.
+Instance UIDs it uses); one cut short by a crash is run again after the restart. The UIDs of
+its DICOM results derive from the case and run, so a run repeated after a crash re-sends the
+same objects (which a destination recognises) rather than a second report of the same views.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import io
 import logging
 import time
+import uuid
 from collections import OrderedDict
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -42,15 +45,16 @@ from .poses import ViewGeometry, planned_pins
 from .recording import CaseRecorder
 from .results import build_result, validate_result
 from .sender import OutgoingObject
-from .spool import Spool, write_atomic, write_json_atomic
+from .spool import Spool, remove_partial, write_atomic, write_json_atomic
 
-__all__ = ["Pipeline", "RunOutcome", "plane_polygon", "PLANE_PATCH_HALF_MM"]
+__all__ = ["Pipeline", "RunOutcome", "plane_polygon", "result_uid", "PLANE_PATCH_HALF_MM"]
 
 log = logging.getLogger("slamtka.pipeline")
 PLANE_PATCH_HALF_MM = 30.0
 _PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
 _SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
 _SC_CLASS = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
+_RESULT_UID_NAMESPACE = uuid.UUID("5f0c3a52-7b1e-4c55-9d0e-51a3c0a7e2b4")  # slamtka results
 
 
 @dataclass
@@ -69,6 +73,15 @@ class _ViewInput:
     contours_raw: dict[str, np.ndarray] | None = None
     contour_source: str | None = None
     used: bool = True
+
+
+def result_uid(case_id: str, run_id: str, what: str) -> str:
+    """The UID of one result object (or series) of a run: the same every time it runs.
+
+    A name-based UUID under the 2.25 root (PS3.5 B.2); pydicom's ``generate_uid`` ignores
+    its entropy sources for that root and would return a random one.
+    """
+    return f"2.25.{uuid.uuid5(_RESULT_UID_NAMESPACE, f'{case_id}/{run_id}/{what}').int}"
 
 
 def plane_polygon(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -182,6 +195,7 @@ class Pipeline:
         run_id = run_id_of([v.sop_instance_uid for v in views])
         folder = self.run_folder(case, views)
         folder.mkdir(parents=True, exist_ok=True)
+        remove_partial(folder)  # of an attempt cut short by a crash
         recorder = CaseRecorder(folder / "recording.rrd", case.case_id, run_id)
         try:
             return self._run(case, views, run_id, folder, recorder, started, on_output)
@@ -216,15 +230,17 @@ class Pipeline:
             outcome, observations, initial = self._measure(plan, usable, recorder, reasons, lap)
 
         recorder.stage("results")
+        refused = self._refused_sources(case, len(items), reasons)
         used = {i.view_id for i in items if i.used and i.contours_raw is not None}
-        uids = {"sr": generate_uid(prefix=None),
-                **{i.view_id: generate_uid(prefix=None) for i in items}}
+        uids = {key: result_uid(case.case_id, run_id, key)
+                for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
         timings["total_s"] = time.perf_counter() - started
         doc = build_result(
             case_id=case.case_id, run_id=run_id,
             case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
                   "laterality": case.laterality},
-            sources=[self._source(i, i.view_id in used) for i in items],
+            sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used)
+                     for i in items] + refused,
             outcome=outcome, plan=plan, views=observations,
             calibration={"id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
             initial=initial, reasons=reasons, timings=timings,
@@ -337,15 +353,25 @@ class Pipeline:
                          "pin_mesh_sha256": mesh_digest([plan.pin_mesh])},
                 "solver_config": repr(self.solver_config)}
 
-    def _source(self, item: _ViewInput, used: bool) -> dict:
-        v, f = item.view, item.frame
-        return {"view_id": item.view_id, "sop_instance_uid": v.sop_instance_uid,
-                "sop_class_uid": v.sop_class_uid, "series_instance_uid": v.series_uid,
-                "acquisition_datetime": (None if f.acquisition_datetime is None
-                                         else f.acquisition_datetime.isoformat()),
-                "positioner": v.positioner, "initialisation": v.pairing.initialisation,
-                "encoder_reading": v.pairing.encoder_reading, "angle_check": v.pairing.angle_check,
-                "contours": item.contour_source, "used": used}
+    @staticmethod
+    def _source(view: View, view_id: str, contours: str | None, used: bool) -> dict:
+        when = view.acquisition_datetime
+        return {"view_id": view_id, "sop_instance_uid": view.sop_instance_uid,
+                "sop_class_uid": view.sop_class_uid, "series_instance_uid": view.series_uid,
+                "acquisition_datetime": None if when is None else when.isoformat(),
+                "positioner": view.positioner, "initialisation": view.pairing.initialisation,
+                "encoder_reading": view.pairing.encoder_reading,
+                "angle_check": view.pairing.angle_check, "contours": contours, "used": used,
+                "problem": view.pairing.problem}
+
+    def _refused_sources(self, case: Case, first: int, reasons: list[str]) -> list[dict]:
+        """The case's views whose geometry is unknown (no encoder reading at their time, no
+        positioner angles): listed as refused, with the reason, so no view goes unmentioned."""
+        out = []
+        for k, v in enumerate((v for v in case.ordered() if not v.usable), start=first + 1):
+            reasons.append(f"view{k}: not initialised, left out ({v.pairing.problem})")
+            out.append(self._source(v, f"view{k}", None, False))
+        return out
 
     # -- DICOM results --------------------------------------------------------------------
     def _write_dicom(self, doc: dict, items: list[_ViewInput], plan: Plan | None,
@@ -364,7 +390,7 @@ class Pipeline:
                 tibia_frame_of_reference_uid(doc["inputs"]["plan"]["bone_mesh_sha256"]),
                 plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
                 plan.side)
-        series_sr, series_sc = generate_uid(prefix=None), generate_uid(prefix=None)
+        series_sr, series_sc = uids["sr-series"], uids["sc-series"]
         sr = build_sr(doc, [i.header for i in items], geometry, series_uid=series_sr,
                       sop_instance_uid=uids["sr"], institution=self.institution)
         objects = [self._save(sr, folder / "sr.dcm", "sr", _SR_CLASS)]

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun_bindings
 import trimesh
 
 from solver.geometry import Pose
@@ -179,5 +180,10 @@ class CaseRecorder:
         self._json("result/document", doc)
 
     def close(self) -> None:
+        """Finish the file and free the stream: rerun keeps a dropped stream's two threads
+        (and their buffers) until orphaned streams are cleaned up, which only ``rr.init``
+        does otherwise, so a service writing one recording per run would grow without end."""
         self.rec.flush()
         self.rec.disconnect()
+        self.rec = None
+        rerun_bindings.flush_and_cleanup_orphaned_recordings()

@@ -1,19 +1,20 @@
 """Sending the results: C-STORE to each configured destination through a durable retry queue.
 
 Every (object, destination) pair is a job file in ``queue/pending/`` written crash-safely
-before anything is sent, so a restart resumes where it stopped. A worker thread sends the
-due jobs, one association per destination per round; a failure is retried with exponential
-backoff (``retry_initial_s`` doubling up to ``retry_max_s``) and after ``max_attempts`` the
-job moves to ``queue/failed/``. Every success, failure and abandonment is in the audit log.
+before anything is sent, so a restart resumes where it stopped; the job is named after the
+pair, so an object queued again (a run repeated after a crash) is still one job. A worker
+thread sends the due jobs, one association per destination per round; a failure is retried
+with exponential backoff (``retry_initial_s`` doubling up to ``retry_max_s``) and after
+``max_attempts`` the job moves to ``queue/failed/``. Every success, failure and abandonment is in the audit log.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import threading
 import time
-import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -24,7 +25,7 @@ from pynetdicom import AE
 from .audit import AuditLog
 from .config import Destination, SenderConfig
 from .scp import client_ssl_context
-from .spool import write_json_atomic
+from .spool import remove_partial, write_json_atomic
 
 __all__ = ["Sender", "SendJob", "OutgoingObject"]
 
@@ -79,17 +80,28 @@ class Sender:
             for obj in objects:
                 if obj.kind not in dest.objects:
                     continue
-                job = SendJob(uuid.uuid4().hex, dest.name, str(obj.path), obj.kind,
-                              obj.sop_class_uid, obj.sop_instance_uid, case_id, run_id, now)
+                pair = f"{dest.name}\0{obj.sop_instance_uid}".encode()
+                job = SendJob(hashlib.sha256(pair).hexdigest()[:32], dest.name, str(obj.path),
+                              obj.kind, obj.sop_class_uid, obj.sop_instance_uid, case_id, run_id,
+                              now)
                 write_json_atomic(self.pending_dir / f"{job.id}.json", asdict(job))
                 jobs.append(job)
         self._wake.set()
         return jobs
 
+    def recover(self) -> int:
+        """At start-up: remove what a killed writer left in the queue; how many files."""
+        return remove_partial(self.pending_dir) + remove_partial(self.failed_dir)
+
     def _jobs(self, folder: Path) -> list[SendJob]:
+        """The jobs in ``folder``; one settled (removed) while listing is left out, because
+        the status board lists the queue while the sender thread works on it."""
         jobs = []
         for path in sorted(folder.glob("*.json")):
-            jobs.append(SendJob(**json.loads(path.read_text())))
+            try:
+                jobs.append(SendJob(**json.loads(path.read_text())))
+            except FileNotFoundError:
+                continue
         return sorted(jobs, key=lambda j: (j.created, j.id))
 
     def pending(self) -> list[SendJob]:

@@ -6,7 +6,8 @@ never waits for the solver); the sender delivers results (:mod:`service.sender`)
 encoder link reads the C-arm (``drivers``); the status board keeps ``status.json`` fresh.
 
 Start-up checks everything before the DICOM port opens: the configuration, the calibration
-(checksum), the plans folder, the link configuration. Then the spool is replayed into cases,
+(checksum), the plans folder, the link configuration. Temporary files a killed predecessor
+left in the spool and the send queue are removed. Then the spool is replayed into cases,
 so a restart loses nothing acknowledged, and a case whose current views were not yet
 measured is measured now. Under systemd (``Type=notify``) readiness is signalled once the
 port is open. SIGTERM/SIGINT stop it cleanly: the port closes first, the running case
@@ -35,7 +36,7 @@ from .plans import PlanStore
 from .poses import ViewGeometry
 from .scp import DicomReceiver
 from .sender import Sender
-from .spool import Spool, SpoolEntry
+from .spool import Spool, SpoolEntry, remove_partial
 from .status import Metrics, StatusBoard
 
 __all__ = ["Service", "add_serve_parser"]
@@ -119,6 +120,7 @@ class Service:
         if self.link is not None:
             self.link.start()
         self.pipeline.warm_up()
+        partial = remove_partial(self.spool.instances) + self.sender.recover()
         due = self._recover()
         self.sender.start()
         self.receiver.start()
@@ -129,6 +131,7 @@ class Service:
         self.status.start()
         self.audit.record("service_started", ae_title=self.config.dicom.ae_title,
                           port=self.receiver.port, recovered_instances=self.spool.count(),
+                          partial_files_removed=partial,
                           config=str(self.config.source))
         _sd_notify("READY=1")
 

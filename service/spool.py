@@ -8,7 +8,8 @@ atomically and the first copy is kept (processing is idempotent by SOP Instance 
 
 Beside each instance the case assembler keeps a small JSON sidecar (how the frame was
 paired with the C-arm's encoders), written the same crash-safe way, so a restart re-builds
-every case exactly as it was.
+every case exactly as it was. A crash can leave only temporary files (``.tmp-*``) behind,
+never a partial instance; :func:`remove_partial` deletes them at the next start.
 """
 
 from __future__ import annotations
@@ -24,7 +25,10 @@ from pathlib import Path
 import pydicom
 from pydicom.dataset import Dataset
 
-__all__ = ["Spool", "SpoolEntry", "entry_id", "write_atomic", "write_json_atomic"]
+__all__ = ["Spool", "SpoolEntry", "entry_id", "write_atomic", "write_json_atomic", "remove_partial",
+           "TEMP_PREFIX"]
+
+TEMP_PREFIX = ".tmp-"
 
 
 def entry_id(sop_instance_uid: str) -> str:
@@ -46,7 +50,7 @@ def write_atomic(path: Path, data: bytes, replace: bool = True) -> bool:
     With ``replace=False`` an existing ``path`` is kept and False is returned.
     """
     path = Path(path)
-    tmp = path.parent / f".tmp-{uuid.uuid4().hex}"
+    tmp = path.parent / f"{TEMP_PREFIX}{uuid.uuid4().hex}"
     try:  # a failed write (disk full) leaves nothing behind
         with open(tmp, "wb") as f:
             f.write(data)
@@ -66,6 +70,19 @@ def write_atomic(path: Path, data: bytes, replace: bool = True) -> bool:
         raise
     _fsync_dir(path.parent)
     return True
+
+
+def remove_partial(folder: Path) -> int:
+    """Delete the temporary files a killed writer left in ``folder``; how many there were.
+
+    Only safe while nothing writes into ``folder`` (at start-up, before the port opens).
+    """
+    leftovers = list(Path(folder).glob(f"{TEMP_PREFIX}*"))
+    for path in leftovers:
+        path.unlink(missing_ok=True)
+    if leftovers:
+        _fsync_dir(Path(folder))
+    return len(leftovers)
 
 
 def write_json_atomic(path: Path, doc: dict) -> None:
@@ -129,4 +146,11 @@ class Spool:
         return sum(1 for _ in self.instances.glob("*.dcm"))
 
     def bytes_used(self) -> int:
-        return sum(p.stat().st_size for p in self.instances.glob("*"))
+        """Bytes in the spool; a temporary file renamed away while counting is skipped."""
+        total = 0
+        for path in self.instances.glob("*"):
+            try:
+                total += path.stat().st_size
+            except FileNotFoundError:
+                continue
+        return total

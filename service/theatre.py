@@ -133,6 +133,7 @@ class Theatre:
         self.service: subprocess.Popen | None = None
         self.config: Path | None = None
         self.port = 0
+        self.environ: dict[str, str] = {}  # configuration overrides (SLAMTKA_...) for the service
         self._scene: XRayScene | None = None
 
     # -- set-up ---------------------------------------------------------------------------
@@ -246,7 +247,7 @@ port = {display_port}
         with open(self.root / "service.log", "ab") as log:
             self.service = subprocess.Popen(
                 [sys.executable, "-m", "service.cli", "serve", "--config", str(self.config)],
-                stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1", **self.environ})
         self._wait_for_service(60.0)
 
     def stop_service(self, kill: bool = False) -> int:
