@@ -1,14 +1,20 @@
 # Two entry points a fresh machine needs: `make demo` and `make test`.
+# Supply chain (needs PyPI, never part of `make test`): `make lock`, `make sbom`, `make audit`.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# The locked dependency set: every package of the venv, pinned (`make lock` refreshes it).
+LOCK := requirements.lock
+# The supply-chain tools live in their own venv, so that they are not in the SBOM they write.
+TOOLS := build/supply-chain
+SBOM := build/slamtka-sbom.cdx.json
 # Debian tools the tests use as independent clients and validators (DCMTK, dicom3tools).
 SYSTEM_TOOLS := storescu echoscu dsrdump dciodvfy
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench clean lock sbom audit
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(LOCK)
 	@missing=""; for t in $(SYSTEM_TOOLS); do command -v $$t >/dev/null || missing=1; done; \
 	if [ -n "$$missing" ]; then \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
@@ -16,7 +22,7 @@ $(STAMP): pyproject.toml
 	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet --constraint $(LOCK) -e '.[test]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -28,5 +34,26 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/slamtka bench accuracy --runs 20 --levels 1 --out bench-out/accuracy
 
+lock: $(STAMP)
+	$(BIN)/pip freeze --exclude-editable > $(LOCK)
+
+$(TOOLS)/.installed:
+	$(PYTHON) -m venv $(TOOLS)
+	$(TOOLS)/bin/pip install --quiet --upgrade pip cyclonedx-bom pip-audit
+	touch $@
+
+# CycloneDX (JSON) of the venv installed from the lock, with the project as root component.
+sbom: $(STAMP) $(TOOLS)/.installed
+	$(TOOLS)/bin/cyclonedx-py environment --pyproject pyproject.toml --output-reproducible \
+	  --output-format JSON --output-file $(SBOM) $(BIN)/python
+	@echo "wrote $(SBOM)"
+
+# Known vulnerabilities of every pinned package of the lock (AUDIT_SERVICE: pypi or osv);
+# strict: a package that could not be looked up fails the audit instead of passing unseen.
+AUDIT_SERVICE ?= pypi
+audit: $(TOOLS)/.installed
+	$(TOOLS)/bin/pip-audit --requirement $(LOCK) --no-deps --disable-pip --strict \
+	  --vulnerability-service $(AUDIT_SERVICE) --progress-spinner off
+
 clean:
-	rm -rf $(VENV) bench-out .pytest_cache
+	rm -rf $(VENV) bench-out .pytest_cache $(TOOLS) $(SBOM)
