@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import ssl
 import subprocess
+import time
 
 import pytest
 from pynetdicom import AE
@@ -105,7 +106,13 @@ def test_invalid_instances_get_a_failure_status_with_the_reason(scp):
     assert statuses[0].ErrorComment == "PatientID is missing"
     assert "PixelData holds" in statuses[1].ErrorComment
     # A command whose UID pynetdicom cannot decode: the association is aborted, and audited.
-    assert "Status" not in statuses[2] and assoc.is_aborted
+    # Both land asynchronously (the requestor's thread, the receiver's audit), so wait.
+    assert "Status" not in statuses[2]
+    assoc.join(timeout=10.0)
+    deadline = time.monotonic() + 10.0
+    while not _events(tmp_path, "association_aborted") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert assoc.is_aborted
     assert stored == [] and receiver.spool.count() == 0
     rejected = _events(tmp_path, "rejected")
     aborted = _events(tmp_path, "association_aborted")
