@@ -25,6 +25,7 @@ phantom frames and measures them.
 from __future__ import annotations
 
 import json
+import logging
 import re
 import threading
 import time
@@ -48,11 +49,11 @@ from .cases import case_id_of, run_id_of
 from .frames import Frame
 from .hostile import (Dropped, RawAssociation, dataset_bytes, element_length_cases,
                       malformed_pdus, pixel_length_cases, truncations, with_uid)
-from .poses import beam_direction_anat
 from .spool import entry_id
 from .theatre import CARM_AE, PATIENT_ID, SERVICE_AE, ResultCollector, Theatre
 
-__all__ = ["FAULT_ITEMS", "run_fault_item", "SoakFigures"]
+__all__ = ["FAULT_ITEMS", "run_fault_item", "crash", "destination_down", "serial_faults", "soak",
+           "SoakFigures", "SmallCase", "small_case", "CArmClient", "running_theatre"]
 
 FAULT_ITEMS = ("crash", "destination_down", "serial_faults")
 # Fast retries, and never give up, so that a result waits for as long as a bench keeps a
@@ -60,7 +61,7 @@ FAULT_ITEMS = ("crash", "destination_down", "serial_faults")
 _FAST_SENDER = {"SLAMTKA_SENDER_RETRY_INITIAL_S": "0.2", "SLAMTKA_SENDER_RETRY_MAX_S": "1.0",
                 "SLAMTKA_SENDER_MAX_ATTEMPTS": "100000"}
 _SPOOLED = re.compile(r"^[0-9a-f]{40}\.(dcm|json)$")
-_SR_MODALITY = "SR"
+_OBJECTS_PER_RUN = 3  # the structured report and one image per view of a two-view case
 MEMORY_DRIFT_LIMIT_MB = 64.0  # resident memory growth after the first minute of a soak
 FD_GROWTH_LIMIT = 8  # open file descriptors more at the end of a soak than after its first minute
 
@@ -88,6 +89,7 @@ class SmallCase:
 
 
 def small_case(tag: str, index: int, angles_deg: tuple[float, ...] = (-30.0, 30.0)) -> SmallCase:
+    """Patient ``tag-index``, one 64 x 64 frame per angle (positioner angles, no encoders)."""
     rng = np.random.default_rng(index)
     patient, study, series = f"{tag}-{index}", generate_uid(), generate_uid()
     views = []
@@ -128,15 +130,22 @@ class CArmClient:
 
 @contextmanager
 def running_theatre(root: Path, encoders: bool = False, **kwargs) -> Iterator[Theatre]:
-    """The service (fast sender retries), an OR display and optionally the C-arm's encoders."""
+    """The service (fast sender retries), an OR display and optionally the C-arm's encoders.
+
+    The display's pynetdicom logs every association a killed service leaves half-sent, with a
+    traceback; those are expected here, so they are kept out of the bench's output."""
     theatre = Theatre(root, encoders=encoders, **kwargs)
     theatre.environ.update(_FAST_SENDER)
     theatre.prepare()
+    quiet = logging.getLogger("pynetdicom")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
     theatre.start()
     try:
         yield theatre
     finally:
         theatre.stop()
+        quiet.setLevel(level)
 
 
 def _data(theatre: Theatre) -> Path:
@@ -171,9 +180,6 @@ def _partial_files(data: Path) -> list[str]:
     return spool + queue
 
 
-_OBJECTS_PER_RUN = 3  # the structured report and one image per view of a two-view case
-
-
 # -- faults and durability ---------------------------------------------------------------
 
 def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
@@ -190,11 +196,12 @@ def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
         sending.set()
 
         def killer() -> None:
+            moments = np.random.default_rng(seed + 1)  # its own: Generators are not thread-safe
             per_life = max(1, 2 * stores // max(kills, 1))
             for _ in range(kills):
-                target = int(rng.integers(0, per_life + 1))
+                target = int(moments.integers(0, per_life + 1))
                 _wait(lambda: since_restart[0] >= target or not sending.is_set(), 600.0, 0.005)
-                time.sleep(float(rng.uniform(0.0, 0.2 if sending.is_set() else 1.5)))
+                time.sleep(float(moments.uniform(0.0, 0.2 if sending.is_set() else 1.5)))
                 theatre.stop_service(kill=True)
                 killed.append(time.monotonic())
                 since_restart[0] = 0
@@ -207,6 +214,8 @@ def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
             data, uid = queue[0]
             status = client.store(data, uid)
             if status is None:  # the service went away mid-store: send it again
+                if not thread.is_alive() and theatre.service.poll() is not None:
+                    raise RuntimeError(f"the service is down for good; see {root / 'service.log'}")
                 time.sleep(0.05)
                 continue
             queue.popleft()

@@ -3,9 +3,11 @@
 Every (object, destination) pair is a job file in ``queue/pending/`` written crash-safely
 before anything is sent, so a restart resumes where it stopped; the job is named after the
 pair, so an object queued again (a run repeated after a crash) is still one job. A worker
-thread sends the due jobs, one association per destination per round; a failure is retried
+thread sends the due jobs, one association per destination per round, settling each job as
+its answer comes (a crash mid-round re-sends only the object in flight); a failure is retried
 with exponential backoff (``retry_initial_s`` doubling up to ``retry_max_s``) and after
-``max_attempts`` the job moves to ``queue/failed/``. Every success, failure and abandonment is in the audit log.
+``max_attempts`` the job moves to ``queue/failed/``. Every success, failure and abandonment
+is in the audit log.
 """
 
 from __future__ import annotations
@@ -123,31 +125,35 @@ class Sender:
                                       f"destination {dest.name}"), None)
         return ae.associate(dest.host, dest.port, ae_title=dest.ae_title, tls_args=tls)
 
-    def _send_to(self, dest: Destination, jobs: list[SendJob]) -> dict[str, str]:
-        """Errors by job id ('' = sent) for one association to ``dest``."""
-        errors = {}
+    def _send_to(self, dest: Destination, jobs: list[SendJob], now: float) -> int:
+        """Send ``jobs`` over one association to ``dest``; how many were sent. Each job is
+        settled as soon as its answer comes, so a crash mid-round re-sends one object, not
+        the whole round."""
         try:
             assoc = self._association(dest, {j.sop_class_uid for j in jobs})
         except Exception as exc:  # socket/TLS setup errors of every kind end up here
-            return {j.id: f"cannot connect: {exc}" for j in jobs}
+            return sum(self._settle(j, f"cannot connect: {exc}", now) for j in jobs)
         if not assoc.is_established:
             why = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "failed"
-            return {j.id: f"association {why}" for j in jobs}
+            return sum(self._settle(j, f"association {why}", now) for j in jobs)
+        sent, done = 0, 0
         try:
             for job in jobs:
                 try:
                     ds = pydicom.dcmread(job.path)
                 except (OSError, pydicom.errors.InvalidDicomError) as exc:
-                    errors[job.id] = f"cannot read {job.path}: {exc}"
-                    continue
-                status = assoc.send_c_store(ds)
-                code = getattr(status, "Status", None)
-                errors[job.id] = "" if code in _SUCCESS_OR_WARNING else (
-                    "no response" if code is None else f"status 0x{code:04X}")
+                    error = f"cannot read {job.path}: {exc}"
+                else:
+                    code = getattr(assoc.send_c_store(ds), "Status", None)
+                    error = "" if code in _SUCCESS_OR_WARNING else (
+                        "no response" if code is None else f"status 0x{code:04X}")
+                sent += self._settle(job, error, now)
+                done += 1
         finally:
             if assoc.is_established:
                 assoc.release()
-        return errors
+            sent += sum(self._settle(j, "not attempted", now) for j in jobs[done:])
+        return sent
 
     def run_once(self, now: float | None = None) -> int:
         """Send every due job; returns how many were sent."""
@@ -157,10 +163,11 @@ class Sender:
         for name in sorted({j.destination for j in due}):
             jobs = [j for j in due if j.destination == name]
             dest = self.destinations.get(name)
-            errors = (self._send_to(dest, jobs) if dest is not None
-                      else {j.id: f"destination {name!r} is no longer configured" for j in jobs})
-            for job in jobs:
-                sent += self._settle(job, errors.get(job.id, "not attempted"), now)
+            if dest is None:
+                sent += sum(self._settle(j, f"destination {name!r} is no longer configured", now)
+                            for j in jobs)
+            else:
+                sent += self._send_to(dest, jobs, now)
         return sent
 
     def _settle(self, job: SendJob, error: str, now: float) -> int:

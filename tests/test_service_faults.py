@@ -32,6 +32,8 @@ def test_killed_service_loses_nothing_acknowledged_and_measures_each_input_set_o
     for figure in ("lost_acknowledged", "partial_files", "cases_incomplete", "extra_results",
                    "runs_processed_twice", "second_reports_delivered", "duplicates_unrecognised"):
         assert tally.notes[figure] == 0, figure
+    # per kill at most the object in flight and those of the run it cut short arrive again
+    assert tally.notes["objects_redelivered"] <= 4 * tally.notes["kills"]
 
 
 def test_results_wait_for_a_destination_that_is_down_across_a_restart(tmp_path):
