@@ -505,11 +505,18 @@ class SoakFigures:
                            int(fds[-1] - fds[first]))
 
 
-def run_fault_item(name: str, root: Path, count: int) -> Tally:
+def run_fault_item(name: str, root: Path, count: float) -> Tally:
     """One item by name; ``count`` is the number of stores (crash, with one kill per twenty),
-    cases (destination_down, serial_faults) or minutes (soak)."""
+    cases (destination_down, serial_faults) or minutes (soak). A failed item keeps the end of
+    the service's log (the bench's folder is temporary)."""
     if name == "crash":
-        return crash(root, count, max(1, count // 20))
-    if name == "soak":
-        return soak(root, count, log=lambda line: print(line, flush=True))
-    return {"destination_down": destination_down, "serial_faults": serial_faults}[name](root, count)
+        tally = crash(root, int(count), max(1, int(count) // 20))
+    elif name == "soak":
+        tally = soak(root, count, log=lambda line: print(line, flush=True))
+    else:
+        items = {"destination_down": destination_down, "serial_faults": serial_faults}
+        tally = items[name](root, int(count))
+    service_log = root / "service.log"
+    if tally.failures and service_log.is_file():
+        tally.notes["service_log_tail"] = service_log.read_text(errors="replace").splitlines()[-40:]
+    return tally

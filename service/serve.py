@@ -175,7 +175,7 @@ class Service:
                 self._assemble(entry, pending)
             if pending:
                 self._process(pending.pop(next(iter(pending))))
-            self.status.write()
+            self.status.refresh()
 
     def _assemble(self, entry: SpoolEntry, pending: dict[str, Case]) -> None:
         """Put a received instance into its case and extract its contours ahead of the run."""

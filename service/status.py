@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import threading
 from collections import Counter
@@ -24,6 +25,8 @@ from pynetdicom.sop_class import Verification
 from .config import ServiceConfig, load_config
 from .scp import client_ssl_context
 from .spool import write_json_atomic
+
+log = logging.getLogger("slamtka.status")
 
 __all__ = ["Metrics", "StatusBoard", "echo", "prometheus_text", "add_status_parser"]
 
@@ -72,6 +75,14 @@ class StatusBoard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
+    def refresh(self) -> None:
+        """:meth:`write` for the loops: a failure is logged, it never stops the caller (the
+        worker or the board's thread), which would leave the service up but idle."""
+        try:
+            self.write()
+        except Exception:
+            log.exception("cannot write the status snapshot %s", self.path)
+
     def write(self) -> dict:
         with self._lock:
             doc = {"updated": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
@@ -82,7 +93,7 @@ class StatusBoard:
     def start(self) -> None:
         def loop() -> None:
             while not self._stop.wait(self.interval_s):
-                self.write()
+                self.refresh()
 
         self.write()
         self._thread = threading.Thread(target=loop, name="slamtka-status", daemon=True)

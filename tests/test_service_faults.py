@@ -19,6 +19,7 @@ from service.pipeline import result_uid
 from service.recording import CaseRecorder
 from service.sender import OutgoingObject, Sender
 from service.spool import TEMP_PREFIX, Spool, remove_partial
+from service.status import StatusBoard
 
 pytest.importorskip("solver.imaging.calibration",
                     reason="the C-arm calibration module (imaging) has not landed yet")
@@ -111,3 +112,13 @@ def test_listing_the_queue_survives_a_job_settled_meanwhile(tmp_path):
     # what the status board meets when the sender thread removes a job it has just listed
     (sender.pending_dir / "settled.json").symlink_to(tmp_path / "gone.json")
     assert sender.pending() == []
+
+
+def test_a_failing_status_source_does_not_stop_the_loops(tmp_path):
+    def broken() -> dict:
+        raise FileNotFoundError("a job settled while it was listed")
+
+    board = StatusBoard(tmp_path / "status.json", {"queue": broken})
+    board.refresh()  # what the worker and the board's thread call: logged, not raised
+    with pytest.raises(FileNotFoundError):
+        board.write()
