@@ -80,12 +80,8 @@ class ContourGenerator:
         """Mask (1/4 resolution) of the footprint's interior, more than a mask pixel deep.
 
         Contour generators that project into it are interior folds, not the outer outline.
-        Triangles smaller than a mask pixel (a fibula's dense mesh) can miss every pixel
-        centre, so the footprint is closed first: its pinholes would pass folds off as
-        outline. It changes slowly with the pose, so callers may reuse it for nearby poses."""
-        kernel = np.ones((3, 3), np.uint8)
-        footprint = cv2.morphologyEx(self.footprint(T_cam_model, camera), cv2.MORPH_CLOSE, kernel)
-        return cv2.erode(footprint, kernel)
+        It changes slowly with the pose, so callers may reuse it for nearby poses."""
+        return cv2.erode(self.footprint(T_cam_model, camera), np.ones((3, 3), np.uint8))
 
     def outline_points(
         self,

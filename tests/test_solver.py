@@ -218,7 +218,7 @@ def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     from solver.geometry import so3_log
     from solver.setup_search import search_setup
 
-    case = simulate_case(phantom_plan, SimulationConfig(seed=5, init_rot_sd_rad=0.2,
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2, init_rot_sd_rad=0.2,
                                                         init_trans_sd_mm=40.0))
     anatomy = phantom_plan.landmarks.T_tibia_anat()
 
@@ -226,7 +226,7 @@ def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
         D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
         return float(np.degrees(np.linalg.norm(so3_log(D.R)))), float(np.linalg.norm(D.t))
 
-    assert min(error(case.initial.T_cam_tibia[0])) > 20.0  # 25 deg, 69 mm
+    assert min(error(case.initial.T_cam_tibia[0])) > 20.0  # 26 deg, 83 mm
     views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
              for T, v in zip(case.initial.T_cam_tibia, case.views)]
     correction = search_setup(phantom_plan.bone_model().coarse_contour, views, anatomy)
