@@ -34,7 +34,7 @@ import numpy as np
 
 from .alignment import align_view_in_image
 from .camera import Camera
-from .geometry import Pose
+from .geometry import Pose, box_corners
 from .measurement import ResectionPlane, angle_covariance, fit_resection_plane
 from .observations import LABELS, PIN_LABELS, ViewObservation
 from .optimizer import (
@@ -127,6 +127,7 @@ class SolveOutcome:
     convergence_reason: str
     point_counts: dict[str, int] = field(default_factory=dict)
     initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
+    went_astray: bool = False  # refused because the solve lost its way, not for the geometry
 
 
 def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
@@ -149,8 +150,7 @@ def seat_on_rays(
     The ray is searched over the model's depth range at ``_SEAT_COARSE`` steps, then at
     ``step_mm`` around the best, then refined to the vertex of a parabola.
     """
-    corners = np.array(np.meshgrid(*model.sdf.bounds().T, indexing="ij")).reshape(3, -1).T
-    near_far = T_cam_body.apply(corners)[:, 2]
+    near_far = T_cam_body.apply(box_corners(*model.sdf.bounds()))[:, 2]
     rays = camera.rays(pixels)
     rays = rays / rays[:, 2:3]  # unit depth
     T_body_cam = T_cam_body.inverse()
@@ -455,7 +455,7 @@ def solve_joint(
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
                 for T, view in zip(initial.T_cam_tibia, views)]
     for search in config.global_searches:
-        if outcome.status == "measured" or not _wrong_basin(outcome):
+        if not outcome.went_astray:
             break
         correction = search_setup(problem.bone.coarse_contour, observed,
                                   plan.landmarks.T_tibia_anat(), search)
@@ -467,17 +467,11 @@ def solve_joint(
     return outcome
 
 
-def _wrong_basin(outcome: SolveOutcome) -> bool:
-    """Whether a refusal says the solve went astray (worth a global restart), rather than
-    that the geometry itself cannot give a measurement."""
-    return outcome.reason.startswith(("the solve did not converge", "contours do not fit",
-                                      "the bone outline", "the pin1 outline", "the pin2 outline"))
-
-
 def _refused(problem: JointProblem, reason: str, state: State | None,
              report: SolveReport | None, rms: dict[str, float], start: float,
-             poses: tuple[Pose, ...] = ()) -> SolveOutcome:
-    """A "not_measured" outcome; ``poses`` stand in for the state when none was solved."""
+             poses: tuple[Pose, ...] = (), went_astray: bool = False) -> SolveOutcome:
+    """A "not_measured" outcome; ``poses`` stand in for the state when none was solved;
+    ``went_astray`` says a restart from a global search may still measure."""
     n = problem.n_views
     final = state.poses if state is not None else poses
     return SolveOutcome(
@@ -485,7 +479,7 @@ def _refused(problem: JointProblem, reason: str, state: State | None,
         list(final[n:]), None, None, rms, report.term_costs if report else {},
         report.iterations if report else 0, time.perf_counter() - start,
         bool(report and report.converged), report.reason if report else "not run",
-        problem.point_counts())
+        problem.point_counts(), went_astray=went_astray)
 
 
 def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
@@ -505,10 +499,10 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     rms, n_residuals = _residual_rms(terms, state)
     if not fine.converged:
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
-                        rms, start)
+                        rms, start, went_astray=True)
     misfit = _contour_misfit(problem, state, rms)
     if misfit is not None:
-        return _refused(problem, misfit, state, report, rms, start)
+        return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])
     separation = _view_separation_deg(final_views)
     if separation < config.min_view_separation_deg:
