@@ -57,7 +57,8 @@ class _ViewField:
         self.camera, self.search = camera, search
         d = search.downscale
         self.shape = (-(-camera.height // d), -(-camera.width // d))
-        self.observed = np.unique(np.round(observed / d).astype(int), axis=0)
+        reduced = np.unique(np.round(observed / d).astype(int), axis=0)
+        self.observed = reduced[self._inside(reduced)]
         self.truncate = search.truncate_px / d
         self.reach = -(-search.search_px // d)
         field = np.minimum(distance_map.values, search.truncate_px).astype(np.float32)
@@ -94,12 +95,15 @@ class _ViewField:
         """Mean truncated distance from the observed contour to the placed outline: an
         outline lying on some of the edges but leaving others unexplained scores badly."""
         image = np.full(self.shape, 255, np.uint8)
-        inside = ((outline >= 0) & (outline < np.array(self.shape[::-1]))).all(axis=1)
-        image[outline[inside, 1], outline[inside, 0]] = 0
+        inside = outline[self._inside(outline)]
+        image[inside[:, 1], inside[:, 0]] = 0
         field = cv2.distanceTransform(image, cv2.DIST_L2, 3)
         obs = self.observed
-        obs = obs[((obs >= 0) & (obs < np.array(self.shape[::-1]))).all(axis=1)]
         return float(np.mean(np.minimum(field[obs[:, 1], obs[:, 0]], self.truncate)))
+
+    def _inside(self, pixels: np.ndarray) -> np.ndarray:
+        """Mask of reduced-resolution pixels (N, 2) that lie inside the reduced image."""
+        return ((pixels >= 0) & (pixels < np.array(self.shape[::-1]))).all(axis=1)
 
 
 def _rotations(half_range_deg: float, step_deg: float, centre: np.ndarray) -> list[np.ndarray]:
