@@ -146,6 +146,11 @@ class Pose:
         return Pose.from_matrix(np.asarray(rows, dtype=float))
 
 
+def box_corners(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of the axis-aligned box between ``lower`` and ``upper``."""
+    return np.array(np.meshgrid(*np.array([lower, upper], float).T, indexing="ij")).reshape(3, -1).T
+
+
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> Pose:
     """Pose ``T_world_cam`` of a camera at ``eye`` whose +z looks at ``target``.
 

@@ -10,13 +10,14 @@ project onto the boundary of the model's projected footprint.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
 import trimesh
 
 from .camera import Camera
-from .geometry import Pose
+from .geometry import Pose, box_corners
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
 
@@ -68,11 +69,15 @@ class ContourGenerator:
                      shift=_SUBPIXEL_BITS)
         return mask
 
+    @cached_property
+    def bounding_box_corners(self) -> np.ndarray:
+        """(8, 3) corners of the model's bounding box, model frame (computed once)."""
+        return box_corners(self.vertices.min(axis=0), self.vertices.max(axis=0))
+
     def image_motion_px(self, T_a: Pose, T_b: Pose, camera: Camera) -> float:
         """Largest image displacement of the model's bounding-box corners between two poses:
         a bound on how far any of its points moved in the image."""
-        corners = np.array(np.meshgrid(*np.array([self.vertices.min(0), self.vertices.max(0)]).T,
-                                       indexing="ij")).reshape(3, -1).T
+        corners = self.bounding_box_corners
         uv_a, uv_b = camera.project(T_a.apply(corners)), camera.project(T_b.apply(corners))
         return float(np.max(np.linalg.norm(uv_a - uv_b, axis=1)))
 
