@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Pose", "hat", "so3_exp", "so3_log", "rotation_about", "look_at"]
+__all__ = ["Pose", "hat", "so3_exp", "so3_log", "so3_right_jacobian_inverse", "rotation_about",
+           "look_at"]
 
 _I3 = np.eye(3)
 
@@ -57,6 +58,18 @@ def so3_log(R: np.ndarray) -> np.ndarray:
         axis = B[k] / max(axis[k], 1e-12)
         return theta * axis / np.linalg.norm(axis)
     return theta / (2.0 * np.sin(theta)) * w
+
+
+def so3_right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
+    """``J_r(phi)^-1``: how ``log(R Exp(psi))`` moves with a small ``psi`` (the left
+    Jacobian's inverse is this at ``-phi``)."""
+    phi = np.asarray(phi, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    K = hat(phi)
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * K + K @ K / 12.0
+    coefficient = 1.0 / theta**2 - (1.0 + np.cos(theta)) / (2.0 * theta * np.sin(theta))
+    return np.eye(3) + 0.5 * K + coefficient * K @ K
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:

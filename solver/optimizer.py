@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable, Protocol
 
 import numpy as np
@@ -150,6 +151,27 @@ def _evaluate(terms: list[Term], state: State, jacobians: bool):
     return lins, costs
 
 
+def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """Rows of ``values`` summed by ``index`` into ``n`` bins (a vectorised scatter-add)."""
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
+    return np.asarray(_selector(index, n) @ flat).reshape((n,) + values.shape[1:])
+
+
+def _selector(index: np.ndarray, n: int) -> sparse.csr_matrix:
+    """The (n, len(index)) 0/1 matrix that sums rows into the bins ``index``."""
+    return sparse.csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))),
+                             shape=(n, len(index)))
+
+
+def _inverse_3x3(M: np.ndarray) -> np.ndarray:
+    """Inverses of (X, 3, 3) matrices from their cofactors (much faster than a batched LU
+    for thousands of tiny blocks)."""
+    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
+    cofactors = np.stack([np.cross(r1, r2), np.cross(r2, r0), np.cross(r0, r1)], axis=2)
+    det = np.einsum("xi,xi->x", r0, cofactors[:, :, 0])
+    return cofactors / det[:, None, None]
+
+
 @dataclass
 class NormalEquations:
     """Gauss-Newton system ``H d = -g`` split into pose and point blocks."""
@@ -162,13 +184,23 @@ class NormalEquations:
     pair_pose: np.ndarray  # (K,) pose of each block
     H_px: np.ndarray  # (K, 6, 3)
 
-
-def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Rows of ``values`` summed by ``index`` into ``n`` bins (a vectorised scatter-add)."""
-    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
-    selector = sparse.csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))),
-                                 shape=(n, len(index)))
-    return np.asarray(selector @ flat).reshape((n,) + values.shape[1:])
+    @cached_property
+    def coupling(self) -> tuple[np.ndarray, np.ndarray, list]:
+        """Each point's coupling blocks padded to a fixed count ``k`` (``W`` (X, k, 6, 3);
+        the dummy pose P fills the gaps in ``pose_of`` (X, k)), and for every slot pair the
+        selector that sums its (6, 6) reductions into the (P+1)^2 pose-pair blocks. It does
+        not depend on the damping, so the trial steps of one iteration share it."""
+        P, X = len(self.g_p) // 6, len(self.H_xx)
+        first = np.searchsorted(self.pair_point, np.arange(X))
+        slot = np.arange(len(self.pair_point)) - first[self.pair_point]
+        k_max = int(slot.max()) + 1 if len(slot) else 1
+        W = np.zeros((X, k_max, 6, 3))
+        pose_of = np.full((X, k_max), P)
+        W[self.pair_point, slot] = self.H_px
+        pose_of[self.pair_point, slot] = self.pair_pose
+        pairs = [(a, b, _selector(pose_of[:, a] * (P + 1) + pose_of[:, b], (P + 1) ** 2))
+                 for a in range(k_max) for b in range(k_max)]
+        return W, pose_of, pairs
 
 
 def build_normal_equations(
@@ -216,8 +248,8 @@ def build_normal_equations(
 
 def _reduced_system(
     ne: NormalEquations, n_poses: int, lam: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Schur complement of the LM-damped system: returns (S, rhs, V_inv, padded H_px).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Schur complement of the LM-damped system: returns (S, rhs, V_inv).
 
     Damping ``lam * diag`` is applied to the pose and point blocks *before* elimination, so
     the step equals that of the damped full system."""
@@ -226,37 +258,28 @@ def _reduced_system(
     diag = np.einsum("xii->xi", V)
     reg = _POINT_REGULARISATION * np.maximum(diag.sum(axis=1), 1e-9)
     V[:, np.arange(3), np.arange(3)] += lam * diag + reg[:, None]
-    V_inv = np.linalg.inv(V)
+    V_inv = _inverse_3x3(V)
 
-    # Pad each point's coupling blocks to a fixed count; the dummy pose P is dropped later.
-    X = len(V)
-    first = np.searchsorted(ne.pair_point, np.arange(X))
-    slot = np.arange(len(ne.pair_point)) - first[ne.pair_point]
-    k_max = int(slot.max()) + 1 if len(slot) else 1
-    W = np.zeros((X, k_max, 6, 3))
-    pose_of = np.full((X, k_max), P)
-    W[ne.pair_point, slot] = ne.H_px
-    pose_of[ne.pair_point, slot] = ne.pair_pose
-
+    W, pose_of, pairs = ne.coupling
     Y = W @ V_inv[:, None]  # (X, k, 6, 3)
-    blocks = np.zeros((P + 1, P + 1, 6, 6))
-    for a in range(k_max):
-        for b in range(k_max):
-            pair = pose_of[:, a] * (P + 1) + pose_of[:, b]
-            reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
-            blocks += _sum_by_index(pair, reduction, (P + 1) ** 2).reshape(blocks.shape)
+    blocks = np.zeros(((P + 1) ** 2, 36))
+    for a, b, selector in pairs:
+        reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
+        blocks += selector @ reduction.reshape(-1, 36)
+    blocks = blocks.reshape(P + 1, P + 1, 6, 6)
     g_shift = _sum_by_index(pose_of.reshape(-1), np.einsum("xaij,xj->xai", Y, ne.g_x)
                             .reshape(-1, 6), P + 1)
 
     H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
     S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
     rhs = -ne.g_p + g_shift[:P].reshape(-1)
-    return S, rhs, V_inv, (W, pose_of)
+    return S, rhs, V_inv
 
 
 def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float):
     """LM step (pose increments (6P,), point increments (X, 3)) for damping ``lam``."""
-    S, rhs, V_inv, (W, pose_of) = _reduced_system(ne, n_poses, lam)
+    S, rhs, V_inv = _reduced_system(ne, n_poses, lam)
+    W, pose_of, _ = ne.coupling
     S_free = S[np.ix_(free, free)]
     d_p = np.zeros(6 * n_poses)
     d_p[free] = np.linalg.solve(S_free, rhs[free])

@@ -89,7 +89,7 @@ class SolverConfig:
     silhouette_spacing_px: float = 5.0
     coarse: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
-    fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=2e-3, step_tolerance=1e-3)
+    fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3)
     min_view_separation_deg: float = 15.0
     min_bone_points: int = 50
     min_pin_points: int = 20

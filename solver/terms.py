@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import Camera
-from .geometry import Pose, hat, so3_log
+from .geometry import Pose, hat, so3_log, so3_right_jacobian_inverse
 from .observations import DistanceMap
 from .optimizer import Linearization, RobustLoss, State
 from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
@@ -133,7 +133,9 @@ class ModelProjectionTerm:
     Two-sided, so that neither can be ignored: every silhouette point inside the field of
     view is charged its distance to the observed contour (distance map), and every observed
     contour pixel its distance to the nearest projected silhouette point. A one-sided cost
-    could be lowered by sliding the model out of the field of view.
+    could be lowered by sliding the model out of the field of view. The nearest points are
+    searched when Jacobians are requested and held while steps are tried: a held pairing
+    can only overstate a trial's cost, so a step accepted on it is a true decrease.
     """
 
     name: str
@@ -151,6 +153,7 @@ class ModelProjectionTerm:
     freeze_outline: bool = False
     _outline: np.ndarray | None = field(default=None, init=False, repr=False)
     _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
+    _nearest: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def _T_cam_body(self, state: State):
         T = state.poses[self.view]
@@ -171,6 +174,7 @@ class ModelProjectionTerm:
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         if self._outline is None or (jacobians and not self.freeze_outline):
             self._outline = self._trace(self._T_cam_body(state))
+            self._nearest = None
         S = self._outline
         if len(S) == 0:
             # Nothing of the model is in view: every observed pixel is unexplained.
@@ -180,7 +184,10 @@ class ModelProjectionTerm:
         uv, J_proj = (self.camera.project_with_jacobian(p_cam) if jacobians
                       else (self.camera.project(p_cam), None))
         dist, grad = self.distance_map.query(uv)
-        nearest_dist, nearest = cKDTree(uv).query(self.observed)
+        if jacobians or self._nearest is None:
+            self._nearest = cKDTree(uv).query(self.observed)[1]
+        nearest = self._nearest
+        nearest_dist = np.linalg.norm(uv[nearest] - self.observed, axis=1)
         r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px
         if not jacobians:
             return Linearization(r)
@@ -201,8 +208,10 @@ class RelativePoseTerm:
     view A, expressed in the anatomical frame ``anchor`` (``T_tibia_anat``), so that its
     rotation is about the knee centre and its translation is at the knee, where the
     encoder uncertainty (``sigma_rad``, ``sigma_mm``) is stated. The residual is
-    ``(t_D / sigma_mm, log R_D / sigma_rad)``; its 6x12 Jacobian is taken by central
-    differences of this closed form (exact to rounding, and cheap for one residual block).
+    ``(t_D / sigma_mm, log R_D / sigma_rad)``. Its Jacobians follow from how the right
+    increments ``E = (rho, phi)`` of the views move ``D``: ``T_B E`` gives ``D (A^-1 E A)``
+    and ``T_A E`` gives ``(A^-1 E^-1 A) D``, to first order a right and a left increment of
+    ``D`` by the increment carried into the anchor frame.
     """
 
     name: str
@@ -215,19 +224,26 @@ class RelativePoseTerm:
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("l2", 1.0)
 
-    def _residual(self, T_a: Pose, T_b: Pose) -> np.ndarray:
-        D = self.anchor.inverse() @ T_a.inverse() @ self.measured.inverse() @ T_b @ self.anchor
-        return np.concatenate([D.t / self.sigma_mm, so3_log(D.R) / self.sigma_rad])
+    def _discrepancy(self, T_a: Pose, T_b: Pose) -> Pose:
+        return self.anchor.inverse() @ T_a.inverse() @ self.measured.inverse() @ T_b @ self.anchor
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        T_a, T_b = state.poses[self.view_a], state.poses[self.view_b]
-        r = self._residual(T_a, T_b)[None, :]
+        D = self._discrepancy(state.poses[self.view_a], state.poses[self.view_b])
+        phi = so3_log(D.R)
+        r = np.concatenate([D.t / self.sigma_mm, phi / self.sigma_rad])[None, :]
         if not jacobians:
             return Linearization(r)
-        eps = 1e-6
-        steps = np.eye(6) * eps
-        J_a = np.column_stack([self._residual(T_a.retract(e), T_b) - self._residual(T_a.retract(-e), T_b)
-                               for e in steps]) / (2 * eps)
-        J_b = np.column_stack([self._residual(T_a, T_b.retract(e)) - self._residual(T_a, T_b.retract(-e))
-                               for e in steps]) / (2 * eps)
+        R_A, t_A = self.anchor.R.T, hat(self.anchor.t)  # R_A is A^-1's rotation
+        right_inv = so3_right_jacobian_inverse(phi)
+        left_inv = so3_right_jacobian_inverse(-phi)
+        J_a = np.zeros((6, 6))
+        J_a[:3, :3] = -R_A
+        J_a[:3, 3:] = hat(D.t) @ R_A + R_A @ t_A
+        J_a[3:, 3:] = -left_inv @ R_A
+        J_b = np.zeros((6, 6))
+        J_b[:3, :3] = D.R @ R_A
+        J_b[:3, 3:] = -D.R @ R_A @ t_A
+        J_b[3:, 3:] = right_inv @ R_A
+        scale = np.repeat([1.0 / self.sigma_mm, 1.0 / self.sigma_rad], 3)[:, None]
+        J_a, J_b = scale * J_a, scale * J_b
         return Linearization(r, [(self.view_a, J_a[None]), (self.view_b, J_b[None])])

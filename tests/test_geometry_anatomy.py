@@ -47,3 +47,49 @@ def test_landmarks_refuse_nonsense():
         Landmarks(np.zeros(3), np.array([0, 0, -370.0]), np.array([0, 1.0, 0]), "up")
     with pytest.raises(ValueError, match="parallel"):
         Landmarks(np.zeros(3), np.array([0, 0, -370.0]), np.array([0, 0, 1.0]), "left")
+
+
+def test_relative_pose_jacobians_far_from_agreement():
+    """E_odo's analytic Jacobians hold where the views disagree with the encoders by a lot
+    (the simulated cases start where they agree, which tests little of the rotation part)."""
+    from solver.optimizer import State
+    from solver.terms import RelativePoseTerm
+
+    rng = np.random.default_rng(3)
+
+    def random_pose() -> Pose:
+        return Pose(so3_exp(rng.normal(size=3) * 0.6), rng.normal(size=3) * 50.0)
+
+    term = RelativePoseTerm("E_odo", 0, 1, random_pose(), random_pose(), 0.01, 2.0)
+    state = State((random_pose(), random_pose()), np.zeros((0, 3)))
+    lin = term.linearize(state)
+    eps = 1e-6
+    for pose, J in lin.pose_jacobians:
+        for dof in range(6):
+            step = np.zeros((2, 6))
+            step[pose, dof] = eps
+            plus = term.linearize(state.retract(step.ravel(), state.points), False).residuals
+            minus = term.linearize(state.retract(-step.ravel(), state.points), False).residuals
+            fd = (plus - minus)[0] / (2 * eps)
+            np.testing.assert_allclose(J[0, :, dof], fd, atol=1e-5 * (1 + np.abs(fd).max()))
+
+
+def test_cropped_distance_map_agrees_with_the_whole_image_map():
+    """A pin's map is computed around its contour only: inside that window it is the full
+    map; beyond, it still grows away from the contour (an upper bound that pulls back)."""
+    from solver.observations import DistanceMap
+
+    t = np.linspace(0.0, 1.0, 200)[:, None]
+    points = np.array([400.0, 300.0]) + t * np.array([150.0, 60.0])
+    whole = DistanceMap.from_points(points, 1024, 1024)
+    window = DistanceMap.from_points(points, 1024, 1024, margin_px=40)
+    assert window.values.size < whole.values.size / 20
+    near = np.array([[420.0, 330.0], [560.0, 340.0], [380.0, 290.0]])
+    np.testing.assert_allclose(window.query(near)[0], whole.query(near)[0], atol=1e-4)
+    np.testing.assert_allclose(window.query(near)[1], whole.query(near)[1], atol=1e-4)
+    far = np.array([[100.0, 900.0], [1000.0, 20.0]])
+    d_window, g_window = window.query(far)
+    assert np.all(d_window >= whole.query(far)[0] - 1e-6)
+    # The gradient still points away from the contour.
+    towards = points.mean(axis=0) - far
+    assert np.all(np.einsum("ij,ij->i", g_window, towards) < 0)
