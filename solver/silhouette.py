@@ -21,13 +21,11 @@ from .geometry import Pose, box_corners
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
 
-# Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution; cv2.fillPoly's shift
-# keeps _SUBPIXEL_BITS of sub-pixel precision in the vertex coordinates.
+# Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution.
 _MASK_DOWNSCALE = 4
 # The interior mask is eroded by one mask pixel, so it stays valid while the model moves by
 # less than half of that in the image (see ContourGenerator.interior).
 INTERIOR_REUSE_PX = _MASK_DOWNSCALE / 2
-_SUBPIXEL_BITS = 4
 
 
 @dataclass(frozen=True)
@@ -39,35 +37,75 @@ class ContourGenerator:
     face_normals: np.ndarray  # (F, 3)
     face_centres: np.ndarray  # (F, 3)
     adjacent_faces: np.ndarray  # (E, 2) faces sharing each interior edge
-    adjacent_edges: np.ndarray  # (E, 2) vertex indices of that edge
+    adjacent_edges: np.ndarray  # (E, 2) vertex indices of that edge, as the first face runs it
+    open_edges: np.ndarray  # (B, 2) edges of one face only (open meshes), as that face runs them
+    open_edge_faces: np.ndarray  # (B,) that face
 
     @staticmethod
     def from_mesh(mesh: trimesh.Trimesh) -> ContourGenerator:
+        faces = np.asarray(mesh.faces, np.int64)
+        adjacent_faces = np.asarray(mesh.face_adjacency, np.int64)
+        edges = np.asarray(mesh.face_adjacency_edges, np.int64)
+        # Orient each shared edge as its first face runs it (the second runs it backwards).
+        first = faces[adjacent_faces[:, 0]]
+        forward = np.any((first == edges[:, :1]) & (np.roll(first, -1, axis=1) == edges[:, 1:]),
+                         axis=1)
+        edges = np.where(forward[:, None], edges, edges[:, ::-1])
+        # Edges used by one face only: every directed face edge whose reverse is not one.
+        directed = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+        n = len(mesh.vertices)
+        keys = directed[:, 0] * n + directed[:, 1]
+        is_open = ~np.isin(directed[:, 1] * n + directed[:, 0], keys)
         return ContourGenerator(
             vertices=np.asarray(mesh.vertices, float),
-            faces=np.asarray(mesh.faces, np.int64),
+            faces=faces,
             face_normals=np.asarray(mesh.face_normals, float),
             face_centres=np.asarray(mesh.triangles_center, float),
-            adjacent_faces=np.asarray(mesh.face_adjacency, np.int64),
-            adjacent_edges=np.asarray(mesh.face_adjacency_edges, np.int64),
+            adjacent_faces=adjacent_faces,
+            adjacent_edges=edges,
+            open_edges=directed[is_open],
+            open_edge_faces=np.repeat(np.arange(len(faces)), 3)[is_open],
         )
 
     def _front_facing(self, source_in_model: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", self.face_centres - source_in_model, self.face_normals) < 0
 
     def footprint(self, T_cam_model: Pose, camera: Camera, downscale: int = _MASK_DOWNSCALE) -> np.ndarray:
-        """Binary mask (uint8, 1/downscale resolution) of the model's projection."""
+        """Binary mask (uint8, 1/downscale resolution) of the model's projection.
+
+        The front-facing faces all wind the same way in the image, so the footprint (their
+        union) is where the winding number of their boundary is not zero: the contour
+        generators (and open mesh edges of front faces), run as their front face runs them.
+        The winding number is accumulated along each row from the signed crossings of these
+        edges with the row, so the cost grows with the outline, not with the faces, and no
+        sliver of a face can leave a pinhole.
+        """
         front = self._front_facing(T_cam_model.inverse().t)
-        uv = camera.project(T_cam_model.apply(self.vertices))
-        tri = uv[self.faces[front]] / downscale
-        pts = np.round(tri * (1 << _SUBPIXEL_BITS)).astype(np.int32)
-        height = -(-camera.height // downscale)
-        width = -(-camera.width // downscale)
-        mask = np.zeros((height, width), np.uint8)
-        # Triangles are drawn one polygon each so overlaps fill as a union, not even-odd.
-        cv2.fillPoly(mask, list(pts.reshape(-1, 3, 1, 2)), 1, lineType=cv2.LINE_8,
-                     shift=_SUBPIXEL_BITS)
-        return mask
+        first_front = front[self.adjacent_faces[:, 0]]
+        on_contour = first_front != front[self.adjacent_faces[:, 1]]
+        edges = self.adjacent_edges[on_contour]
+        edges = np.vstack([np.where(first_front[on_contour, None], edges, edges[:, ::-1]),
+                           self.open_edges[front[self.open_edge_faces]]])
+        height, width = -(-camera.height // downscale), -(-camera.width // downscale)
+        used, index = np.unique(edges, return_inverse=True)
+        uv = camera.project(T_cam_model.apply(self.vertices[used])) / downscale
+        a, b = uv[index.reshape(-1, 2)[:, 0]], uv[index.reshape(-1, 2)[:, 1]]
+        # Each edge crosses the rows whose centre lies in [top, bottom) of its span.
+        downwards = b[:, 1] > a[:, 1]
+        top = np.where(downwards[:, None], a, b)
+        bottom = np.where(downwards[:, None], b, a)
+        first_row = np.clip(np.ceil(top[:, 1]), 0, height).astype(np.int64)
+        rows_crossed = np.clip(np.ceil(bottom[:, 1]), 0, height).astype(np.int64) - first_row
+        edge = np.repeat(np.arange(len(a)), rows_crossed)
+        row = first_row[edge] + np.arange(len(edge)) - np.repeat(
+            np.cumsum(rows_crossed) - rows_crossed, rows_crossed)
+        fraction = (row - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
+        x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
+        column = np.clip(np.ceil(x), 0, width).astype(np.int64)
+        crossings = np.bincount(row * (width + 1) + column,
+                                weights=np.where(downwards, 1.0, -1.0)[edge],
+                                minlength=height * (width + 1)).reshape(height, width + 1)
+        return (np.abs(np.cumsum(crossings, axis=1)[:, :width]) > 0.5).astype(np.uint8)
 
     @cached_property
     def bounding_box_corners(self) -> np.ndarray:

@@ -76,3 +76,44 @@ def test_bad_mesh_files_get_clear_errors(tmp_path):
         load_mesh(huge, (40, 600))
     with pytest.raises(MeshError, match="outside the plausible"):
         load_mesh(huge, (40, 600), units="mm")
+
+
+def _covered_pixel_centres(generator, T_cam_model, camera, pixels: np.ndarray) -> np.ndarray:
+    """Brute force: which footprint pixel centres (N, 2) lie in some front-facing face."""
+    front = generator._front_facing(T_cam_model.inverse().t)
+    tri = camera.project(T_cam_model.apply(generator.vertices))[generator.faces[front]] / 4.0
+    a, b, c = (tri[None, :, k] for k in range(3))
+    p = pixels[:, None, :].astype(float)
+
+    def side(u, v):
+        return (v[..., 0] - u[..., 0]) * (p[..., 1] - u[..., 1]) - (v[..., 1] - u[..., 1]) * (p[..., 0] - u[..., 0])
+
+    s1, s2, s3 = side(a, b), side(b, c), side(c, a)
+    return np.any(((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0)), axis=1)
+
+
+@pytest.mark.parametrize("open_mesh", [False, True])
+def test_footprint_is_the_union_of_front_faces(open_mesh):
+    """The footprint rasterised from the outline's winding number is exactly the union of the
+    front-facing faces at pixel centres, for closed meshes and for open ones (a mesh with a
+    hole is bounded there by its open edges)."""
+    from solver.camera import Camera
+    from solver.geometry import look_at
+    from solver.silhouette import ContourGenerator
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    mesh = trimesh.util.concatenate([mesh, trimesh.creation.box([30.0, 120.0, 30.0])])
+    if open_mesh:
+        # Remove the faces on one side: the sphere shows a hole in the middle of its footprint.
+        mesh.update_faces(mesh.triangles_center[:, 2] < 30.0)
+    generator = ContourGenerator.from_mesh(mesh)
+    camera = Camera(fx=4500.0, fy=4500.0, cx=512.0, cy=512.0, width=1024, height=1024)
+    T_cam_model = look_at(np.array([20.0, -10.0, 700.0]), np.zeros(3), np.array([0.0, 1.0, 0.0])).inverse()
+    mask = generator.footprint(T_cam_model, camera)
+    rows, cols = np.nonzero(np.ones_like(mask))
+    sample = np.random.default_rng(0).choice(len(rows), 20000, replace=False)
+    pixels = np.column_stack([cols[sample], rows[sample]])
+    expected = _covered_pixel_centres(generator, T_cam_model, camera, pixels)
+    found = mask[pixels[:, 1], pixels[:, 0]] == 1
+    assert expected.sum() > 1000
+    assert np.mean(found == expected) > 0.995  # pixel centres exactly on an edge may go either way

@@ -218,17 +218,22 @@ def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     from solver.geometry import so3_log
     from solver.setup_search import search_setup
 
-    case = simulate_case(phantom_plan, SimulationConfig(seed=2, init_rot_sd_rad=0.2,
-                                                        init_trans_sd_mm=40.0))
+    from solver.geometry import rotation_about
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
     anatomy = phantom_plan.landmarks.T_tibia_anat()
+    # The patient lies 26 deg and 80 mm away from where the encoders place the knee.
+    set_up_error = anatomy @ Pose(rotation_about([1.0, 2.0, 0.5], np.radians(26.0)),
+                                  [40.0, -50.0, 50.0]) @ anatomy.inverse()
+    initial = [T @ set_up_error for T in case.truth_T_cam_tibia]
 
     def error(T_cam_tibia: Pose) -> tuple[float, float]:
         D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
         return float(np.degrees(np.linalg.norm(so3_log(D.R)))), float(np.linalg.norm(D.t))
 
-    assert min(error(case.initial.T_cam_tibia[0])) > 20.0  # 26 deg, 83 mm
+    assert min(error(initial[0])) > 20.0
     views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
-             for T, v in zip(case.initial.T_cam_tibia, case.views)]
+             for T, v in zip(initial, case.views)]
     correction = search_setup(phantom_plan.bone_model().coarse_contour, views, anatomy)
-    rotation_deg, translation_mm = error(case.initial.T_cam_tibia[0] @ correction)
+    rotation_deg, translation_mm = error(initial[0] @ correction)
     assert rotation_deg < 8.0 and translation_mm < 6.0
