@@ -44,7 +44,7 @@ def align_view_in_image(
     centre = np.array([camera.cx, camera.cy]) / downscale
     truncate_px /= downscale
     search_px = -(-search_px // downscale)
-    field = np.minimum(distance_map.values, truncate_px * downscale).astype(np.float32)
+    field = distance_map.truncated(truncate_px * downscale)
     field = cv2.resize(field, None, fx=1 / downscale, fy=1 / downscale,
                        interpolation=cv2.INTER_AREA) / downscale
     pad = 3 * search_px

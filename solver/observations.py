@@ -22,10 +22,10 @@ LABELS = ("bone", "pin1", "pin2")
 PIN_LABELS = ("pin1", "pin2")
 
 
-# A pin covers a small part of the image: its distance map is computed only this far around
-# its contour (beyond, the query's linear growth is an upper bound, which is all a far point
-# needs to be pulled back), which makes it ten times cheaper than a full-image transform.
-PIN_MAP_MARGIN_PX = 96
+# A distance map is computed only this far around its contour (beyond, the query's linear
+# growth is an upper bound, which is all a far point needs to be pulled back): a pin's map
+# then costs a tenth of a full-image transform, the bone's about half.
+MAP_MARGIN_PX = 128
 
 
 @dataclass(frozen=True)
@@ -35,8 +35,10 @@ class DistanceMap:
     ``values[i, j]`` is the distance at pixel ``(origin[0] + j, origin[1] + i)``; the window
     is the whole image unless the map was built with a margin."""
 
-    values: np.ndarray  # (H, W) float32
+    values: np.ndarray  # (h, w) float32
     origin: tuple[int, int] = (0, 0)  # (u, v) of values[0, 0]
+    image_size: tuple[int, int] | None = None  # (width, height) of the whole image
+    margin_px: int | None = None  # how far around the contour the window reaches (None: all)
 
     @staticmethod
     def from_points(points_px: np.ndarray, width: int, height: int,
@@ -53,7 +55,21 @@ class DistanceMap:
         image = np.full((hi[1] - lo[1], hi[0] - lo[0]), 255, np.uint8)
         image[pix[:, 1] - lo[1], pix[:, 0] - lo[0]] = 0
         return DistanceMap(cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
-                           (int(lo[0]), int(lo[1])))
+                           (int(lo[0]), int(lo[1])), (width, height), margin_px)
+
+    def truncated(self, limit_px: float) -> np.ndarray:
+        """The whole image's distances capped at ``limit_px`` (H, W), for the global searches
+        that slide over all of it. Beyond the window every pixel is at least the margin away
+        from the contour, so this is exact when the margin is at least the limit."""
+        h, w = self.values.shape
+        width, height = self.image_size or (w, h)
+        if self.margin_px is not None and limit_px > self.margin_px:
+            raise ValueError(f"a windowed distance map cannot be truncated at {limit_px} px "
+                             f"(its margin is {self.margin_px} px)")
+        field = np.full((height, width), limit_px, np.float32)
+        u, v = self.origin
+        field[v:v + h, u:u + w] = np.minimum(self.values, limit_px)
+        return field
 
     def query(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (N,) and gradients (N, 2) in d/du, d/dv at pixel positions (N, 2).
@@ -111,8 +127,6 @@ class ViewObservation:
 
     def distance_map(self, label: str) -> DistanceMap:
         if label not in self._distance_maps:
-            # The bone's map stays whole: the global searches slide over all of it.
             self._distance_maps[label] = DistanceMap.from_points(
-                self.contours[label], self.camera.width, self.camera.height,
-                margin_px=None if label == "bone" else PIN_MAP_MARGIN_PX)
+                self.contours[label], self.camera.width, self.camera.height, MAP_MARGIN_PX)
         return self._distance_maps[label]

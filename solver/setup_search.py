@@ -61,7 +61,7 @@ class _ViewField:
         self.observed = reduced[self._inside(reduced)]
         self.truncate = search.truncate_px / d
         self.reach = -(-search.search_px // d)
-        field = np.minimum(distance_map.values, search.truncate_px).astype(np.float32)
+        field = distance_map.truncated(search.truncate_px)
         field = cv2.resize(field, None, fx=1 / d, fy=1 / d, interpolation=cv2.INTER_AREA) / d
         self.pad = 3 * self.reach
         self.padded = cv2.copyMakeBorder(field, self.pad, self.pad, self.pad, self.pad,

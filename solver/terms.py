@@ -31,38 +31,39 @@ from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
 from .sdf import SignedDistanceField
 
 __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
-           "posed_in_camera"]
+           "projected"]
 
 
-def posed_in_camera(
-    state: State, view: int, body: int | None, X: np.ndarray, jacobians: bool = True
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
-    """Camera-frame positions of body-frame points and their Jacobians.
+def projected(
+    state: State, view: int, body: int | None, X: np.ndarray, camera: Camera,
+    jacobians: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """Pixels of body-frame points and their Jacobians.
 
-    Returns ``p_cam`` (N, 3), ``d p_cam / d xi_view`` (N, 3, 6), ``d p_cam / d xi_body``
-    (N, 3, 6) or None for the bone, and ``d p_cam / d X`` (3, 3) (shared by all points).
-    Without ``jacobians`` (trial steps: half of all evaluations) only ``p_cam`` is computed
-    and the rest is None.
+    Returns ``uv`` (N, 2), ``d uv / d xi_view`` (N, 2, 6), ``d uv / d xi_body`` (N, 2, 6) or
+    None for the bone, and ``d uv / d X`` (N, 2, 3). Without ``jacobians`` (trial steps:
+    half of all evaluations) only ``uv`` is computed and the rest is None.
+
+    A right increment ``(rho, phi)`` of a pose ``T`` moves ``T p`` by ``R rho - R [p]x phi``;
+    for a row ``g`` of ``d uv / d(T p) R`` the second block is ``-g [p]x = (p x g)``, which
+    is how the (N, 2, 6) blocks are formed without a batched product per point.
     """
     T_view = state.poses[view]
+    T = T_view if body is None else T_view @ state.poses[body]
     if not jacobians:
-        T = T_view if body is None else T_view @ state.poses[body]
-        return T.apply(X), None, None, None
+        return camera.project(T.apply(X)), None, None, None
+    uv, J_proj = camera.project_with_jacobian(T.apply(X))
+
+    def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """(N, 2, 6) from ``G`` = d uv / d(T p) R (N, 2, 3) and the pose's source points p."""
+        return np.concatenate([G, np.cross(p[:, None, :], G)], axis=2)
+
+    G_view = (J_proj.reshape(-1, 3) @ T_view.R).reshape(-1, 2, 3)
     if body is None:
-        p_tibia, J_body, R_chain = X, None, T_view.R
-    else:
-        T_body = state.poses[body]
-        p_tibia = T_body.apply(X)
-        local = np.concatenate(
-            [np.broadcast_to(T_body.R, (len(X), 3, 3)), -T_body.R @ hat(X)], axis=2
-        )
-        J_body = T_view.R @ local
-        R_chain = T_view.R @ T_body.R
-    p_cam = T_view.apply(p_tibia)
-    J_view = np.concatenate(
-        [np.broadcast_to(T_view.R, (len(X), 3, 3)), -T_view.R @ hat(p_tibia)], axis=2
-    )
-    return p_cam, J_view, J_body, R_chain
+        return uv, increments(G_view, X), None, G_view
+    T_body = state.poses[body]
+    G_body = (G_view.reshape(-1, 3) @ T_body.R).reshape(-1, 2, 3)
+    return uv, increments(G_view, T_body.apply(X)), increments(G_body, X), G_body
 
 
 def _pose_jacobians(view: int, body: int | None, J_view: np.ndarray,
@@ -85,19 +86,17 @@ class ReprojectionTerm:
     loss: RobustLoss = RobustLoss("huber", 2.0)
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        X = state.points[self.point_ids]
-        p_cam, J_view, J_body, R_chain = posed_in_camera(state, self.view, self.body, X, jacobians)
-        uv, J_proj = (self.camera.project_with_jacobian(p_cam) if jacobians
-                      else (self.camera.project(p_cam), None))
+        uv, J_view, J_body, J_point = projected(state, self.view, self.body,
+                                                state.points[self.point_ids], self.camera,
+                                                jacobians)
         r = (uv - self.pixels) / self.sigma_px
         if not jacobians:
             return Linearization(r)
-        J_proj = J_proj / self.sigma_px
-        J_b = None if J_body is None else J_proj @ J_body
+        J_b = None if J_body is None else J_body / self.sigma_px
         return Linearization(
             r,
-            _pose_jacobians(self.view, self.body, J_proj @ J_view, J_b),
-            (self.point_ids, J_proj @ R_chain),
+            _pose_jacobians(self.view, self.body, J_view / self.sigma_px, J_b),
+            (self.point_ids, J_point / self.sigma_px),
         )
 
 
@@ -180,9 +179,7 @@ class ModelProjectionTerm:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)
             return Linearization(r)
-        p_cam, J_view, J_body, _ = posed_in_camera(state, self.view, self.body, S, jacobians)
-        uv, J_proj = (self.camera.project_with_jacobian(p_cam) if jacobians
-                      else (self.camera.project(p_cam), None))
+        uv, J_view, J_body, _ = projected(state, self.view, self.body, S, self.camera, jacobians)
         dist, grad = self.distance_map.query(uv)
         if jacobians or self._nearest is None:
             self._nearest = cKDTree(uv).query(self.observed)[1]
@@ -192,11 +189,16 @@ class ModelProjectionTerm:
         if not jacobians:
             return Linearization(r)
         direction = (uv[nearest] - self.observed) / np.maximum(nearest_dist, 1e-9)[:, None]
+        # d r / d xi = (d r / d uv) (d uv / d xi), for the silhouette's own points and for
+        # the silhouette point nearest each observed pixel.
         rows = np.concatenate([np.arange(len(S)), nearest])
-        J_pix = np.concatenate([grad, direction])[:, None, :] / self.sigma_px  # (N, 1, 2)
-        J_dist = J_pix @ J_proj[rows]  # (N, 1, 3)
-        J_b = None if J_body is None else J_dist @ J_body[rows]
-        return Linearization(r, _pose_jacobians(self.view, self.body, J_dist @ J_view[rows], J_b))
+        J_pix = np.concatenate([grad, direction]) / self.sigma_px  # (N, 2)
+
+        def chained(J_uv: np.ndarray) -> np.ndarray:
+            return np.einsum("nk,nkj->nj", J_pix, J_uv[rows])[:, None, :]
+
+        J_b = None if J_body is None else chained(J_body)
+        return Linearization(r, _pose_jacobians(self.view, self.body, chained(J_view), J_b))
 
 
 @dataclass

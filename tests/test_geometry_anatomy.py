@@ -93,3 +93,7 @@ def test_cropped_distance_map_agrees_with_the_whole_image_map():
     # The gradient still points away from the contour.
     towards = points.mean(axis=0) - far
     assert np.all(np.einsum("ij,ij->i", g_window, towards) < 0)
+    # The global searches see the whole image, capped: the same from either map.
+    np.testing.assert_array_equal(window.truncated(30.0), np.minimum(whole.values, 30.0))
+    with pytest.raises(ValueError, match="margin"):
+        window.truncated(50.0)
