@@ -82,6 +82,7 @@ class InitialGuess:
 class SolverConfig:
     sigma_px: float = 2.0  # expected contour noise, pixels
     sigma_mm: float = 0.5  # expected distance of a true edge point to the model surface
+    sigma_depth_mm: float = 0.5  # ... and of its depth along the ray from where it grazes
     w_rp: float = 1.0
     w_bp: float = 1.0
     w_mp: float = 0.1
@@ -232,15 +233,16 @@ class JointProblem:
     def seated_points(self, poses: tuple[Pose, ...],
                       labels: tuple[str, ...] = LABELS) -> tuple[np.ndarray, dict]:
         """Edge points of ``labels`` seated on their rays for ``poses``, with the id range
-        of each group."""
+        and the model-frame ray directions of each group."""
         chunks, ranges, start = [], {}, 0
         for (k, label), px in self.pixels.items():
             if len(px) == 0 or label not in labels:
                 continue
             step = 1.0 if label == "bone" else 0.25
-            chunks.append(seat_on_rays(self.model(label), self.T_cam_body(poses, k, label),
-                                       self.views[k].camera, px, step))
-            ranges[k, label] = np.arange(start, start + len(px))
+            T_cam_body, camera = self.T_cam_body(poses, k, label), self.views[k].camera
+            chunks.append(seat_on_rays(self.model(label), T_cam_body, camera, px, step))
+            ranges[k, label] = (np.arange(start, start + len(px)),
+                                T_cam_body.inverse().rotate(camera.rays(px)))
             start += len(px)
         points = np.vstack(chunks) if chunks else np.zeros((0, 3))
         return points, ranges
@@ -272,13 +274,15 @@ class JointProblem:
         return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, sigma_rad, sigma_mm)
                 for k, T in enumerate(initial.T_cam_tibia) if k > 0]
 
-    def edge_terms(self, ranges: dict) -> list[Term]:
+    def edge_terms(self, points: np.ndarray, ranges: dict) -> list[Term]:
+        """E_rp and E_bp of the edge points ``points`` seated by :meth:`seated_points`."""
         c = self.config
         terms: list[Term] = []
-        for (k, label), ids in ranges.items():
+        for (k, label), (ids, directions) in ranges.items():
             terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
                                           self.pixels[k, label], ids, c.sigma_px, c.w_rp))
-            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, c.sigma_mm, c.w_bp))
+            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, c.sigma_mm,
+                                            directions, points[ids], c.sigma_depth_mm, c.w_bp))
         return terms
 
 
@@ -344,7 +348,7 @@ class _Schedule:
         state, _ = self.lm(p.silhouette_terms(LABELS, 1.0, tight) + self.odometry, state,
                            p.fixed_dofs(), c.coarse, "coarse all")
         points, ranges = p.seated_points(state.poses)
-        terms = p.edge_terms(ranges) + p.silhouette_terms(
+        terms = p.edge_terms(points, ranges) + p.silhouette_terms(
             LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
         state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), c.fine, "joint")
         return state, terms, report
@@ -355,11 +359,11 @@ class _Schedule:
         p, c = self.problem, self.problem.config
         if split:
             points, ranges = p.seated_points(state.poses, labels=("bone",))
-            state, _ = self.lm(p.edge_terms(ranges), State(state.poses, points),
+            state, _ = self.lm(p.edge_terms(points, ranges), State(state.poses, points),
                                p.fixed_dofs(pins=True), c.fine, "back-projection views")
         state = self.with_triangulated_pins(state)
         points, ranges = p.seated_points(state.poses)
-        terms = p.edge_terms(ranges)
+        terms = p.edge_terms(points, ranges)
         held = p.fixed_dofs(views=True) if split else p.fixed_dofs()
         name = "back-projection pins" if split else "back-projection joint"
         state, report = self.lm(terms, State(state.poses, points), held, c.fine, name)

@@ -102,21 +102,36 @@ class ReprojectionTerm:
 
 @dataclass
 class BackProjectionTerm:
-    """E_bp: signed distance of the edge points ``point_ids`` to their model's surface."""
+    """E_bp: the edge points ``point_ids`` are where their rays graze the model's surface.
+
+    Two residuals per point: its signed distance to the surface, and how far it has moved
+    along its ray (``ray_directions``, model frame) from where it was seated (``seated``),
+    where the ray passes closest to or deepest into the model. Without the second a point
+    whose ray cuts into the model (a contour pixel inside the silhouette) could slide to
+    where the ray enters the surface and cost nothing, so noise inside the outline would
+    be free and noise outside charged, biasing the fit; at the seated depth the distance
+    along the ray is stationary, so holding it there is right to first order.
+    """
 
     name: str
     sdf: SignedDistanceField
     point_ids: np.ndarray
     sigma_mm: float
+    ray_directions: np.ndarray  # (N, 3) unit, model frame
+    seated: np.ndarray  # (N, 3) model frame
+    sigma_depth_mm: float
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("huber", 2.0)
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        d, grad = self.sdf.query(state.points[self.point_ids])
-        r = d[:, None] / self.sigma_mm
+        X = state.points[self.point_ids]
+        d, grad = self.sdf.query(X)
+        along = np.einsum("ij,ij->i", X - self.seated, self.ray_directions)
+        r = np.column_stack([d / self.sigma_mm, along / self.sigma_depth_mm])
         if not jacobians:
             return Linearization(r)
-        return Linearization(r, [], (self.point_ids, grad[:, None, :] / self.sigma_mm))
+        J = np.stack([grad / self.sigma_mm, self.ray_directions / self.sigma_depth_mm], axis=1)
+        return Linearization(r, [], (self.point_ids, J))
 
 
 @dataclass

@@ -18,7 +18,7 @@ def _linearized_problem(plan, seed=0):
     points, ranges = problem.seated_points(poses)
     from solver.optimizer import RobustLoss
 
-    terms = problem.edge_terms(ranges) + problem.silhouette_terms(
+    terms = problem.edge_terms(points, ranges) + problem.silhouette_terms(
         ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0)) + problem.odometry_terms(case.initial)
     return case, problem, State(poses, points), terms
 
