@@ -89,6 +89,9 @@ class SolverConfig:
     edge_spacing_px: float = 6.0  # observed contours are thinned to this spacing
     silhouette_spacing_px: float = 5.0
     coarse: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
+    # The pins start triangulated from their contours: their own stage is a short polish
+    # (longer only crawls; every silhouette is refined together next).
+    coarse_pins: LMOptions = LMOptions(max_iterations=4, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
     fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3)
     min_view_separation_deg: float = 15.0
@@ -334,7 +337,7 @@ class _Schedule:
             return state, p.silhouette_terms(("bone",), 1.0, tight), SolveReport(
                 False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])
         state = self.with_triangulated_pins(state)
-        pins_options = c.fine if method == "projection-split" else c.coarse
+        pins_options = c.fine if method == "projection-split" else c.coarse_pins
         state, report = self.lm(p.silhouette_terms(PIN_LABELS, 1.0, tight), state,
                                 p.fixed_dofs(views=True), pins_options, "coarse pins")
         if method == "projection-split":
@@ -515,7 +518,10 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
 
     pins = list(state.poses[n:])
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
-    cov = pose_covariance(terms, state, fixed)
+    # E_mp charges the same contour pixels again that the edge points (E_rp, E_bp) explain:
+    # where those exist, its information would be counted twice, and the spread understated.
+    with_edges = any(term.name == "E_rp" for term in terms)
+    cov = pose_covariance([t for t in terms if not (with_edges and t.name == "E_mp")], state, fixed)
     pin_slice = slice(6 * n, 6 * (n + 2))
     dof = n_residuals - len(state.points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
