@@ -267,6 +267,16 @@ def expose(line_integral: np.ndarray, origin: np.ndarray, camera: Camera, params
     return np.clip(np.round(grey), 0, full_scale).astype(np.uint16)
 
 
+def _solid_interior(generator: ContourGenerator, T_cam_body: Pose, camera: Camera) -> np.ndarray:
+    """The footprint interior of :meth:`ContourGenerator.interior`, with gaps narrower than
+    a footprint pixel closed: a radiograph does not resolve the edges of such a gap (between
+    the fibula and the tibia where they nearly touch, for one), so its folds are no outline.
+    """
+    kernel = np.ones((3, 3), np.uint8)
+    footprint = cv2.morphologyEx(generator.footprint(T_cam_body, camera), cv2.MORPH_CLOSE, kernel)
+    return cv2.erode(footprint, kernel)
+
+
 def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | tuple[Pose, ...],
                       camera: Camera, params: XRayParams = XRayParams(),
                       rng: np.random.Generator | None = None,
@@ -291,7 +301,8 @@ def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | 
     ideal, distorted = {}, {}
     for label, (generator, T) in outlines.items():
         if label == "bone":
-            points = generator.outline_points(T, camera, _TRUTH_SPACING_PX)
+            points = generator.outline_points(T, camera, _TRUTH_SPACING_PX,
+                                              interior=_solid_interior(generator, T, camera))
         else:
             # A pin is convex: every contour generator is on its outline. (The footprint
             # test that drops a bone's interior folds is too coarse for a 20 px wide shaft.)
