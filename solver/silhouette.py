@@ -105,7 +105,17 @@ class ContourGenerator:
         crossings = np.bincount(row * (width + 1) + column,
                                 weights=np.where(downwards, 1.0, -1.0)[edge],
                                 minlength=height * (width + 1)).reshape(height, width + 1)
-        return (np.abs(np.cumsum(crossings, axis=1)[:, :width]) > 0.5).astype(np.uint8)
+        mask = (np.abs(np.cumsum(crossings, axis=1)[:, :width]) > 0.5).astype(np.uint8)
+        # Pixels the outline passes through belong to the footprint too, as when faces are
+        # filled with their edges drawn: an outline point always falls in a footprint pixel.
+        steps = np.ceil(np.max(np.abs(b - a), axis=1)).astype(np.int64) + 1
+        along = np.repeat(np.arange(len(a)), steps)
+        s = (np.arange(len(along)) - np.repeat(np.cumsum(steps) - steps, steps)) / (steps[along] - 1).clip(1)
+        on_outline = np.round(a[along] + s[:, None] * (b[along] - a[along])).astype(np.int64)
+        inside = ((on_outline[:, 0] >= 0) & (on_outline[:, 0] < width)
+                  & (on_outline[:, 1] >= 0) & (on_outline[:, 1] < height))
+        mask[on_outline[inside, 1], on_outline[inside, 0]] = 1
+        return mask
 
     @cached_property
     def bounding_box_corners(self) -> np.ndarray:
