@@ -111,16 +111,20 @@ class CArmClient:
         self.port = port
         self._assoc: RawAssociation | None = None
 
-    def store(self, data: bytes, uid: str) -> int | None:
-        """The C-STORE status, or None when no answer came (the instance is not acknowledged)."""
-        try:
-            if self._assoc is None:
-                self._assoc = RawAssociation(self.port, calling=CARM_AE, called=SERVICE_AE,
-                                             timeout_s=10.0).associate()
-            return self._assoc.store(data, uid)
-        except (Dropped, OSError):
-            self.close()
-            return None
+    def store(self, data: bytes, uid: str, attempts: int = 2) -> int | None:
+        """The C-STORE status, or None when no answer came (the instance is not acknowledged).
+
+        Like a C-arm, it sends again once on a fresh association when the first went quiet
+        or was dropped (the service recognises an instance it already holds)."""
+        for _ in range(attempts):
+            try:
+                if self._assoc is None:
+                    self._assoc = RawAssociation(self.port, calling=CARM_AE, called=SERVICE_AE,
+                                                 timeout_s=10.0).associate()
+                return self._assoc.store(data, uid)
+            except (Dropped, OSError):
+                self.close()
+        return None
 
     def close(self) -> None:
         if self._assoc is not None:
