@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import traceback
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -44,11 +45,17 @@ def _run_one(job: tuple[str, int, int, float]) -> dict:
     plan = _worker_plan
     case = simulate_case(plan, SimulationConfig.at_level(level, seed, noise_px))
     start = time.perf_counter()
-    outcome = solve_joint(plan, case.views, case.initial, SolverConfig(method=method))
-    seconds = time.perf_counter() - start
-    row = {"method": method, "level": level, "seed": seed, "time_s": seconds, "iterations": outcome.iterations,
-           "status": outcome.status, "reason": outcome.reason,
+    row = {"method": method, "level": level, "seed": seed,
            "ctr_abs_deg": None, "str_abs_deg": None, "ctr_sigma_deg": None, "str_sigma_deg": None}
+    try:
+        outcome = solve_joint(plan, case.views, case.initial, SolverConfig(method=method))
+    except Exception as exc:  # a defect: recorded with its place, so one run cannot sink a study
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        row.update(time_s=time.perf_counter() - start, iterations=0, status="error",
+                   reason=f"{type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
+        return row
+    row.update(time_s=time.perf_counter() - start, iterations=outcome.iterations,
+               status=outcome.status, reason=outcome.reason)
     if outcome.status == "measured":
         sigma = np.degrees(np.sqrt(np.diag(outcome.angle_cov)))
         row.update(ctr_abs_deg=abs(float(np.degrees(outcome.plane.ctr)) - case.truth_ctr_deg),
@@ -137,7 +144,10 @@ def run_accuracy(args: argparse.Namespace) -> int:
     (args.out / "results.md").write_text(f"# Accuracy study\n\n{json.dumps(protocol)}\n\n{table}\n")
     _plot(results, args.out / "errors.png")
     print(table)
-    return 0
+    errors = [r for r in rows if r["status"] == "error"]
+    for r in errors:
+        print(f"ERROR {r['method']} level {r['level']} seed {r['seed']}: {r['reason']}")
+    return 1 if errors else 0
 
 
 def _methods(text: str) -> list[str]:

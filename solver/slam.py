@@ -166,7 +166,10 @@ def seat_on_rays(
         return model.sdf.query(T_body_cam.apply(samples))[0].reshape(z.shape)
 
     coarse_step = _SEAT_COARSE * step_mm
-    z = np.arange(max(near_far.min(), 10.0), near_far.max() + coarse_step, coarse_step)
+    # A model that went behind the source (a solve gone astray) still gets points, at the
+    # nearest depth searched; the gates then refuse the solve.
+    near = max(near_far.min(), 10.0)
+    z = np.arange(near, max(near_far.max(), near) + coarse_step, coarse_step)
     around = z[np.argmin(distances(z), axis=1)]
     offsets = np.arange(-_SEAT_COARSE, _SEAT_COARSE + 1) * step_mm
     z_fine = around[:, None] + offsets[None, :]
