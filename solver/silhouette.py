@@ -70,6 +70,15 @@ class ContourGenerator:
     def _front_facing(self, source_in_model: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->i", self.face_centres - source_in_model, self.face_normals) < 0
 
+    def _contour_edges(self, T_cam_model: Pose) -> tuple[np.ndarray, np.ndarray]:
+        """The contour generators (E, 2), each run as its front-facing face runs it, and the
+        front-facing mask of the faces."""
+        front = self._front_facing(T_cam_model.inverse().t)
+        first_front = front[self.adjacent_faces[:, 0]]
+        on_contour = first_front != front[self.adjacent_faces[:, 1]]
+        edges = self.adjacent_edges[on_contour]
+        return np.where(first_front[on_contour, None], edges, edges[:, ::-1]), front
+
     def footprint(self, T_cam_model: Pose, camera: Camera, downscale: int = _MASK_DOWNSCALE) -> np.ndarray:
         """Binary mask (uint8, 1/downscale resolution) of the model's projection.
 
@@ -80,12 +89,8 @@ class ContourGenerator:
         edges with the row, so the cost grows with the outline, not with the faces, and no
         sliver of a face can leave a pinhole.
         """
-        front = self._front_facing(T_cam_model.inverse().t)
-        first_front = front[self.adjacent_faces[:, 0]]
-        on_contour = first_front != front[self.adjacent_faces[:, 1]]
-        edges = self.adjacent_edges[on_contour]
-        edges = np.vstack([np.where(first_front[on_contour, None], edges, edges[:, ::-1]),
-                           self.open_edges[front[self.open_edge_faces]]])
+        generators, front = self._contour_edges(T_cam_model)
+        edges = np.vstack([generators, self.open_edges[front[self.open_edge_faces]]])
         height, width = -(-camera.height // downscale), -(-camera.width // downscale)
         used, index = np.unique(edges, return_inverse=True)
         uv = camera.project(T_cam_model.apply(self.vertices[used])) / downscale
@@ -151,10 +156,7 @@ class ContourGenerator:
         ``outer_only`` interior folds are dropped, using ``interior`` (see :meth:`interior`)
         when given, else the footprint of this pose.
         """
-        source = T_cam_model.inverse().t
-        front = self._front_facing(source)
-        on_contour = front[self.adjacent_faces[:, 0]] != front[self.adjacent_faces[:, 1]]
-        edges = self.adjacent_edges[on_contour]
+        edges = self._contour_edges(T_cam_model)[0]
         if len(edges) == 0:
             return np.zeros((0, 3))
         a, b = self.vertices[edges[:, 0]], self.vertices[edges[:, 1]]
