@@ -33,8 +33,9 @@ __all__ = [
     "pose_covariance",
 ]
 
-# Regularisation of each point's 3x3 block relative to its trace: a contour point's depth
-# along its grazing ray is unobservable to first order, so its block is rank deficient.
+# Regularisation of each point's 3x3 block relative to its trace: a point whose terms leave
+# a direction free (a contour point's depth along its grazing ray, unless a term holds it)
+# has a rank-deficient block.
 _POINT_REGULARISATION = 1e-6
 # Absolute floor on the pose diagonal so an unobserved direction cannot make S singular.
 _POSE_REGULARISATION = 1e-9

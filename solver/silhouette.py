@@ -28,6 +28,12 @@ _MASK_DOWNSCALE = 4
 INTERIOR_REUSE_PX = _MASK_DOWNSCALE / 2
 
 
+def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For consecutive runs of ``counts`` elements: each element's run and its place in it."""
+    owner = np.repeat(np.arange(len(counts)), counts)
+    return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
 @dataclass(frozen=True)
 class ContourGenerator:
     """Precomputed mesh topology for fast silhouette queries in the model's frame."""
@@ -101,9 +107,8 @@ class ContourGenerator:
         bottom = np.where(downwards[:, None], b, a)
         first_row = np.clip(np.ceil(top[:, 1]), 0, height).astype(np.int64)
         rows_crossed = np.clip(np.ceil(bottom[:, 1]), 0, height).astype(np.int64) - first_row
-        edge = np.repeat(np.arange(len(a)), rows_crossed)
-        row = first_row[edge] + np.arange(len(edge)) - np.repeat(
-            np.cumsum(rows_crossed) - rows_crossed, rows_crossed)
+        edge, place = _runs(rows_crossed)
+        row = first_row[edge] + place
         fraction = (row - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
         x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
         column = np.clip(np.ceil(x), 0, width).astype(np.int64)
@@ -114,8 +119,8 @@ class ContourGenerator:
         # Pixels the outline passes through belong to the footprint too, as when faces are
         # filled with their edges drawn: an outline point always falls in a footprint pixel.
         steps = np.ceil(np.max(np.abs(b - a), axis=1)).astype(np.int64) + 1
-        along = np.repeat(np.arange(len(a)), steps)
-        s = (np.arange(len(along)) - np.repeat(np.cumsum(steps) - steps, steps)) / (steps[along] - 1).clip(1)
+        along, place = _runs(steps)
+        s = place / (steps[along] - 1).clip(1)
         on_outline = np.round(a[along] + s[:, None] * (b[along] - a[along])).astype(np.int64)
         inside = ((on_outline[:, 0] >= 0) & (on_outline[:, 0] < width)
                   & (on_outline[:, 1] >= 0) & (on_outline[:, 1] < height))
@@ -163,10 +168,9 @@ class ContourGenerator:
         uv_a = camera.project(T_cam_model.apply(a))
         uv_b = camera.project(T_cam_model.apply(b))
         counts = np.maximum(1, np.ceil(np.linalg.norm(uv_b - uv_a, axis=1) / spacing_px)).astype(int)
-        edge_index = np.repeat(np.arange(len(edges)), counts)
+        edge_index, place = _runs(counts)
         # Sample at the centres of equal sub-segments, so shared end-points are not doubled.
-        starts = np.cumsum(counts) - counts
-        s = (np.arange(counts.sum()) - starts[edge_index] + 0.5) / counts[edge_index]
+        s = (place + 0.5) / counts[edge_index]
         points = a[edge_index] + s[:, None] * (b[edge_index] - a[edge_index])
         uv = uv_a[edge_index] + s[:, None] * (uv_b[edge_index] - uv_a[edge_index])
 

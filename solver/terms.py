@@ -250,17 +250,17 @@ class RelativePoseTerm:
         r = np.concatenate([D.t / self.sigma_mm, phi / self.sigma_rad])[None, :]
         if not jacobians:
             return Linearization(r)
-        R_A, t_A = self.anchor.R.T, hat(self.anchor.t)  # R_A is A^-1's rotation
+        R_inv, t_hat = self.anchor.R.T, hat(self.anchor.t)  # A^-1's rotation, [t_A]x
         right_inv = so3_right_jacobian_inverse(phi)
         left_inv = so3_right_jacobian_inverse(-phi)
         J_a = np.zeros((6, 6))
-        J_a[:3, :3] = -R_A
-        J_a[:3, 3:] = hat(D.t) @ R_A + R_A @ t_A
-        J_a[3:, 3:] = -left_inv @ R_A
+        J_a[:3, :3] = -R_inv
+        J_a[:3, 3:] = hat(D.t) @ R_inv + R_inv @ t_hat
+        J_a[3:, 3:] = -left_inv @ R_inv
         J_b = np.zeros((6, 6))
-        J_b[:3, :3] = D.R @ R_A
-        J_b[:3, 3:] = -D.R @ R_A @ t_A
-        J_b[3:, 3:] = right_inv @ R_A
+        J_b[:3, :3] = D.R @ R_inv
+        J_b[:3, 3:] = -D.R @ R_inv @ t_hat
+        J_b[3:, 3:] = right_inv @ R_inv
         scale = np.repeat([1.0 / self.sigma_mm, 1.0 / self.sigma_rad], 3)[:, None]
         J_a, J_b = scale * J_a, scale * J_b
         return Linearization(r, [(self.view_a, J_a[None]), (self.view_b, J_b[None])])
