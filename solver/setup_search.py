@@ -42,6 +42,7 @@ class SetupSearch:
     coarse_half_range_deg: float = 30.0
     coarse_step_deg: float = 15.0
     refinements: int = 2  # 3x3x3 grids around the best so far, each at half the step
+    rescored: int = 8  # best coarse hypotheses scored again at their own translation
     search_px: int = 800  # largest image shift considered, full-resolution pixels
     truncate_px: float = 40.0
     spacing_px: float = 6.0
@@ -164,11 +165,29 @@ def search_setup(
     if not np.isfinite(score):
         return Pose.identity()
     translation = shifted(translation, shifts)
-    best_rotvec = np.zeros(3)
     steps = [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]
-    for grid in [(search.coarse_half_range_deg, search.coarse_step_deg)] + [(h, h) for h in steps]:
-        best = (np.inf, best_rotvec, shifts)
-        for rotvec in _rotations(*grid, best_rotvec):
+    # Coarse grid: every hypothesis scored at the shared translation, which is wrong in depth
+    # (hence in scale) for a rotation far from the one it came from; the best few are scored
+    # again, each at the translation its own image shifts triangulate to.
+    coarse = sorted(((evaluate(rotvec, translation), rotvec)
+                     for rotvec in _rotations(search.coarse_half_range_deg,
+                                              search.coarse_step_deg, np.zeros(3))),
+                    key=lambda hypothesis: hypothesis[0][0])
+    best = (np.inf, np.zeros(3), translation)
+    for (score, shifts), rotvec in coarse[: search.rescored]:
+        if not np.isfinite(score):
+            break
+        own = translation
+        for _ in range(2):
+            C = correction(rotvec) @ own
+            own = own @ (C.inverse() @ shifted(C, shifts))
+            score, shifts = evaluate(rotvec, own)
+        if score < best[0]:
+            best = (score, rotvec, own)
+    _, best_rotvec, translation = best
+    for half in steps:
+        best = (np.inf, best_rotvec, [])
+        for rotvec in _rotations(half, half, best_rotvec):
             score, shifts = evaluate(rotvec, translation)
             if score < best[0]:
                 best = (score, rotvec, shifts)
