@@ -81,7 +81,10 @@ class InitialGuess:
 @dataclass(frozen=True)
 class SolverConfig:
     sigma_px: float = 2.0  # expected contour noise, pixels
-    sigma_mm: float = 0.5  # expected distance of a true edge point to the model surface
+    sigma_mm: float = 0.5  # expected distance of a true edge point to the bone's surface
+    # ... and to a pin's: a machined part, its mesh and distance field true to ~0.05 mm (the
+    # bone's 0.5 mm is the CT segmentation and its decimated copy, no tolerance of a pin's).
+    pin_sigma_mm: float = 0.1
     sigma_depth_mm: float = 0.5  # ... and of its depth along the ray from where it grazes
     w_rp: float = 1.0
     w_bp: float = 1.0
@@ -94,6 +97,10 @@ class SolverConfig:
     coarse_pins: LMOptions = LMOptions(max_iterations=4, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
     fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3)
+    # The joint stage's edge points are held at the depth where their rays grazed the model
+    # at the coarse poses; after this many iterations they are seated again at the poses
+    # reached, and the stage finished from there (held at stale depths, they bias the fit).
+    joint_seated_iterations: int = 3
     min_view_separation_deg: float = 15.0
     min_bone_points: int = 50
     min_pin_points: int = 20
@@ -287,7 +294,8 @@ class JointProblem:
         for (k, label), (ids, directions) in ranges.items():
             terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
                                           self.pixels[k, label], ids, c.sigma_px, c.w_rp))
-            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, c.sigma_mm,
+            sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
+            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, sigma_mm,
                                             directions, points[ids], c.sigma_depth_mm, c.w_bp))
         return terms
 
@@ -353,10 +361,13 @@ class _Schedule:
         # energy with edge points seated where their rays graze the models.
         state, _ = self.lm(p.silhouette_terms(LABELS, 1.0, tight) + self.odometry, state,
                            p.fixed_dofs(), c.coarse, "coarse all")
-        points, ranges = p.seated_points(state.poses)
-        terms = p.edge_terms(points, ranges) + p.silhouette_terms(
-            LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
-        state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), c.fine, "joint")
+        first = LMOptions(max_iterations=c.joint_seated_iterations,
+                          relative_tolerance=c.fine.relative_tolerance)
+        for options, name in ((first, "joint"), (c.fine, "joint reseated")):
+            points, ranges = p.seated_points(state.poses)
+            terms = p.edge_terms(points, ranges) + p.silhouette_terms(
+                LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
+            state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), options, name)
         return state, terms, report
 
     def back_projection(self, state: State, split: bool) -> tuple[State, list[Term], SolveReport]:
