@@ -213,20 +213,13 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
     assert reason is not None and "pin1 outline" in reason
 
 
-def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
-    """Tens of degrees and tens of millimetres of patient set-up error, shared by both
-    views, come back to a few degrees and millimetres: a start local solving can finish."""
+def _left_after_search(plan, case, initial: list[Pose], search) -> tuple[float, float]:
+    """Rotation (deg) and translation (mm) of the patient set-up error left after the
+    global search from the views' ``initial`` poses (at the knee, anatomical frame)."""
     from solver.geometry import so3_log
     from solver.setup_search import search_setup
 
-    from solver.geometry import rotation_about
-
-    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
-    anatomy = phantom_plan.landmarks.T_tibia_anat()
-    # The patient lies 26 deg and 80 mm away from where the encoders place the knee.
-    set_up_error = anatomy @ Pose(rotation_about([1.0, 2.0, 0.5], np.radians(26.0)),
-                                  [40.0, -50.0, 50.0]) @ anatomy.inverse()
-    initial = [T @ set_up_error for T in case.truth_T_cam_tibia]
+    anatomy = plan.landmarks.T_tibia_anat()
 
     def error(T_cam_tibia: Pose) -> tuple[float, float]:
         D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
@@ -235,6 +228,35 @@ def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     assert min(error(initial[0])) > 20.0
     views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
              for T, v in zip(initial, case.views)]
-    correction = search_setup(phantom_plan.bone_model().coarse_contour, views, anatomy)
-    rotation_deg, translation_mm = error(initial[0] @ correction)
+    return error(initial[0] @ search_setup(plan.bone_model().coarse_contour, views, anatomy,
+                                           search))
+
+
+def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
+    """Tens of degrees and tens of millimetres of patient set-up error, shared by both
+    views, come back to a few degrees and millimetres: a start local solving can finish."""
+    from solver.geometry import rotation_about
+    from solver.setup_search import SetupSearch
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
+    anatomy = phantom_plan.landmarks.T_tibia_anat()
+    # The patient lies 26 deg and 80 mm away from where the encoders place the knee.
+    set_up_error = anatomy @ Pose(rotation_about([1.0, 2.0, 0.5], np.radians(26.0)),
+                                  [40.0, -50.0, 50.0]) @ anatomy.inverse()
+    initial = [T @ set_up_error for T in case.truth_T_cam_tibia]
+    rotation_deg, translation_mm = _left_after_search(phantom_plan, case, initial,
+                                                      SetupSearch())
+    assert rotation_deg < 8.0 and translation_mm < 6.0
+
+
+def test_wide_setup_search_recovers_a_flexion_far_outside_the_first_range(phantom_plan):
+    """A level-4 case of the study whose set-up error is mostly flexion, about 42 deg (out
+    of plane in both views): from the translation found for no rotation, the right
+    rotation is seen at the wrong depth, hence scale, so the best coarse hypotheses must
+    be scored again at their own translation (before, this case was refused)."""
+    from solver.slam import SolverConfig
+
+    case = simulate_case(phantom_plan, SimulationConfig.at_level(4, 4001))
+    rotation_deg, translation_mm = _left_after_search(
+        phantom_plan, case, list(case.initial.T_cam_tibia), SolverConfig().global_searches[-1])
     assert rotation_deg < 8.0 and translation_mm < 6.0
