@@ -11,7 +11,8 @@ tibia frame, pin points in their pin's frame). The schedule:
    ends of their contours and refined; then every silhouette at once;
 3. edge points seated on their observed rays where each ray grazes its model;
 4. joint Levenberg-Marquardt on ``w_rp E_rp + w_bp E_bp + w_mp E_mp (+ E_odo)``, with the
-   silhouettes traced once at its start (the problem is then smooth);
+   silhouettes traced once at its start (the problem is then smooth), the points seated
+   again after a few iterations at the poses reached and the stage finished from there;
 5. quality gates, the resection plane, and its covariance-based uncertainty.
 
 A solve that went astray (stopped at step 2, did not converge, or whose outlines do not
