@@ -175,10 +175,10 @@ def search_setup(
                     key=lambda hypothesis: hypothesis[0][0])
     best = (np.inf, np.zeros(3), translation)
     for (score, shifts), rotvec in coarse[: search.rescored]:
-        if not np.isfinite(score):
-            break
         own = translation
         for _ in range(2):
+            if not np.isfinite(score):  # the outline left some image
+                break
             C = correction(rotvec) @ own
             own = own @ (C.inverse() @ shifted(C, shifts))
             score, shifts = evaluate(rotvec, own)
@@ -191,7 +191,9 @@ def search_setup(
             score, shifts = evaluate(rotvec, translation)
             if score < best[0]:
                 best = (score, rotvec, shifts)
-        _, best_rotvec, shifts = best
+        score, best_rotvec, shifts = best
+        if not np.isfinite(score):
+            break
         C = correction(best_rotvec) @ translation
         translation = translation @ (C.inverse() @ shifted(C, shifts))
     return correction(best_rotvec) @ translation
