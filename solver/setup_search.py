@@ -9,8 +9,10 @@ it is searched for exhaustively, with each view's image telling how well a hypot
   each, the bone's outline (a decimated mesh) is projected into every view and slid over a
   truncated, reduced distance map of the observed contour for every image shift (one
   template correlation per view), the best shift's mean distance being the view's score;
-- the best rotation's shifts say where the knee centre is seen in each view; its rays,
-  triangulated, give the translation, depth included.
+- a hypothesis turns the bone about the knee centre and then carries the knee to where
+  the views see it, so the knee stays put whatever the rotation; the best hypotheses'
+  shifts say where the knee centre is seen in each view, and its rays, triangulated, place
+  it again, depth (hence the outline's scale) included.
 
 The result is one correction ``C`` (tibia frame) with ``T_cam_k_tibia <- T_cam_k_tibia C``
 for every view, so the motion between views is kept exactly as the encoders measured it.
@@ -124,11 +126,14 @@ def search_setup(
     fields = [_ViewField(camera, dmap, observed, search) for _, camera, dmap, observed in views]
     knee = T_tibia_anat.t
 
-    def correction(rotvec: np.ndarray) -> Pose:
-        return T_tibia_anat @ Pose(so3_exp(rotvec), np.zeros(3)) @ T_tibia_anat.inverse()
+    def correction(rotvec: np.ndarray, knee_at: np.ndarray) -> Pose:
+        """The bone turned by ``rotvec`` (anatomical axes) about its knee centre, which is
+        then carried to ``knee_at`` (frame of the initial guess)."""
+        return (Pose(np.eye(3), knee_at - knee) @ T_tibia_anat
+                @ Pose(so3_exp(rotvec), np.zeros(3)) @ T_tibia_anat.inverse())
 
-    def evaluate(rotvec: np.ndarray, translation: Pose) -> tuple[float, list[np.ndarray]]:
-        C, total, shifts = correction(rotvec) @ translation, 0.0, []
+    def evaluate(rotvec: np.ndarray, knee_at: np.ndarray) -> tuple[float, list[np.ndarray]]:
+        C, total, shifts = correction(rotvec, knee_at), 0.0, []
         for (T, camera, _, _), view_field in zip(views, fields):
             T_c = T @ C
             S = contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
@@ -140,60 +145,55 @@ def search_setup(
             shifts.append(shift)
         return total, shifts
 
-    def knee_seen_at(C: Pose, pixels: list[np.ndarray]) -> Pose:
-        """``C`` followed by the translation that puts the knee centre where the views see
-        it (one pixel per view), by triangulating those pixels' rays."""
+    def seen_at(pixels: list[np.ndarray]) -> np.ndarray:
+        """The point (frame of the initial guess) the views see at ``pixels``, one each."""
         origins, directions = [], []
         for (T, camera, _, _), pixel in zip(views, pixels):
-            T_tibia_cam = (T @ C).inverse()
+            T_tibia_cam = T.inverse()
             origins.append(T_tibia_cam.t)
             directions.append(T_tibia_cam.rotate(camera.rays(pixel[None])[0]))
-        knee_seen, _ = triangulate_rays(np.array(origins), np.array(directions))
-        return C @ Pose(np.eye(3), knee_seen - knee)
+        return triangulate_rays(np.array(origins), np.array(directions))[0]
 
-    def shifted(C: Pose, shifts: list[np.ndarray]) -> Pose:
-        """``C`` with the translation that carries out each view's best image shift."""
-        return knee_seen_at(C, [camera.project((T @ C).apply(knee[None]))[0] + shift
-                                for (T, camera, _, _), shift in zip(views, shifts)])
+    def shifted(knee_at: np.ndarray, shifts: list[np.ndarray]) -> np.ndarray:
+        """The knee moved by each view's best image shift."""
+        return seen_at([camera.project(T.apply(knee_at[None]))[0] + shift
+                        for (T, camera, _, _), shift in zip(views, shifts)])
 
     # The knee first where the contours are (the C-arm is aimed at it; the guess may be far
-    # enough off to leave the bone out of the image), then the depth from the views' best
-    # shifts (a wrong depth scales the outline, which no rotation explains), then the
-    # rotation on a coarse grid and finer ones, the translation re-triangulated after each.
-    translation = knee_seen_at(Pose.identity(), [observed.mean(axis=0) for *_, observed in views])
-    score, shifts = evaluate(np.zeros(3), translation)
+    # enough off to leave the bone out of the image), then where the views' best shifts put
+    # it (a wrong depth scales the outline, which no rotation explains), then the rotation
+    # on a coarse grid and finer ones, the knee placed again after each.
+    knee_at = seen_at([observed.mean(axis=0) for *_, observed in views])
+    score, shifts = evaluate(np.zeros(3), knee_at)
     if not np.isfinite(score):
         return Pose.identity()
-    translation = shifted(translation, shifts)
-    steps = [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]
-    # Coarse grid: every hypothesis scored at the shared translation, which is wrong in depth
-    # (hence in scale) for a rotation far from the one it came from; the best few are scored
-    # again, each at the translation its own image shifts triangulate to.
-    coarse = sorted(((evaluate(rotvec, translation), rotvec)
+    knee_at = shifted(knee_at, shifts)
+    # Coarse grid: every hypothesis scored with the knee where no rotation put it, which a
+    # rotation tens of degrees away sees at a somewhat wrong place and depth; the best few
+    # are scored again with the knee where their own image shifts put it.
+    coarse = sorted(((evaluate(rotvec, knee_at), rotvec)
                      for rotvec in _rotations(search.coarse_half_range_deg,
                                               search.coarse_step_deg, np.zeros(3))),
                     key=lambda hypothesis: hypothesis[0][0])
-    best = (np.inf, np.zeros(3), translation)
+    best = (np.inf, np.zeros(3), knee_at)
     for (score, shifts), rotvec in coarse[: search.rescored]:
-        own = translation
+        own = knee_at
         for _ in range(2):
             if not np.isfinite(score):  # the outline left some image
                 break
-            C = correction(rotvec) @ own
-            own = own @ (C.inverse() @ shifted(C, shifts))
+            own = shifted(own, shifts)
             score, shifts = evaluate(rotvec, own)
         if score < best[0]:
             best = (score, rotvec, own)
-    _, best_rotvec, translation = best
-    for half in steps:
+    _, best_rotvec, knee_at = best
+    for half in [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]:
         best = (np.inf, best_rotvec, [])
         for rotvec in _rotations(half, half, best_rotvec):
-            score, shifts = evaluate(rotvec, translation)
+            score, shifts = evaluate(rotvec, knee_at)
             if score < best[0]:
                 best = (score, rotvec, shifts)
         score, best_rotvec, shifts = best
         if not np.isfinite(score):
             break
-        C = correction(best_rotvec) @ translation
-        translation = translation @ (C.inverse() @ shifted(C, shifts))
-    return correction(best_rotvec) @ translation
+        knee_at = shifted(knee_at, shifts)
+    return correction(best_rotvec, knee_at)

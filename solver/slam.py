@@ -110,9 +110,11 @@ class SolverConfig:
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
-    # first within +-30 deg of the encoders' guess, then, if that fails too, +-60 deg.
+    # first within +-30 deg of the encoders' guess, then, each if the last fails too, +-60
+    # and +-90 deg (0.5 rad of set-up error per axis reaches 80 deg in one case in 100).
     global_searches: tuple[SetupSearch, ...] = (
-        SetupSearch(), SetupSearch(coarse_half_range_deg=60.0, coarse_step_deg=20.0, refinements=3))
+        SetupSearch(), SetupSearch(coarse_half_range_deg=60.0, coarse_step_deg=20.0, refinements=3),
+        SetupSearch(coarse_half_range_deg=90.0, coarse_step_deg=30.0, refinements=4, rescored=16))
     method: str = "slam"  # one of METHODS
 
     def __post_init__(self) -> None:
