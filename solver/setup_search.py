@@ -44,7 +44,7 @@ class SetupSearch:
     coarse_half_range_deg: float = 30.0
     coarse_step_deg: float = 15.0
     refinements: int = 2  # 3x3x3 grids around the best so far, each at half the step
-    rescored: int = 8  # best coarse hypotheses scored again at their own translation
+    rescored: int = 8  # best coarse hypotheses scored again, the knee where their shifts put it
     search_px: int = 800  # largest image shift considered, full-resolution pixels
     truncate_px: float = 40.0
     spacing_px: float = 6.0
