@@ -295,12 +295,15 @@ def levenberg_marquardt(
     state: State,
     fixed_dofs: np.ndarray | None = None,
     options: LMOptions = LMOptions(),
-    callback: Callable[[IterationInfo], None] | None = None,
+    callback: Callable[[IterationInfo], str | None] | None = None,
 ) -> tuple[State, SolveReport]:
     """Minimise the robust energy of ``terms`` from ``state``.
 
     ``fixed_dofs`` is a boolean mask over the 6P pose parameters that must not move (gauge
-    directions such as a pin's roll about its own axis).
+    directions such as a pin's roll about its own axis). ``callback`` sees every accepted
+    step; when it returns a reason (a string) the caller has what it needs (say, the
+    quantity it measures has settled) and the solve ends there as converged, for that
+    reason, as a Ceres iteration callback may end a solve successfully.
     """
     start = time.perf_counter()
     P, X = len(state.poses), len(state.points)
@@ -329,8 +332,11 @@ def levenberg_marquardt(
         state, cost, costs = candidate, cand_cost, cand_costs
         history.append(cost)
         lam = max(lam / 10.0, 1e-9)
-        if callback is not None:
-            callback(IterationInfo(iteration, cost, dict(costs), lam, True, state))
+        settled = None if callback is None else callback(
+            IterationInfo(iteration, cost, dict(costs), lam, True, state))
+        if settled:
+            converged, reason = True, settled
+            break
         if decrease < options.relative_tolerance:
             converged, reason = True, "relative cost decrease below tolerance"
             break

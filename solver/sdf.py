@@ -11,6 +11,8 @@ with finite differences).
 from __future__ import annotations
 
 import hashlib
+import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -124,13 +126,20 @@ class SignedDistanceField:
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
     def save(self, path: Path) -> None:
-        """Write atomically so a crash never leaves a truncated cache entry behind."""
+        """Write atomically so a crash never leaves a truncated cache entry behind; each writer
+        has its own temporary file, so processes building the same entry at once (parallel
+        test workers, a study's worker pool) cannot move each other's file away."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, origin=self.origin, spacing=self.spacing, values=self.values,
-                            digest=np.array(self.digest))
-        tmp.replace(path)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".npz")
+        try:
+            with os.fdopen(fd, "wb") as stream:
+                np.savez_compressed(stream, origin=self.origin, spacing=self.spacing,
+                                    values=self.values, digest=np.array(self.digest))
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
 
     @staticmethod
     def load(path: Path) -> SignedDistanceField:
@@ -138,8 +147,10 @@ class SignedDistanceField:
             return SignedDistanceField(data["origin"], float(data["spacing"]), data["values"],
                                        str(data["digest"]))
 
-    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Signed distances (N,) and gradients (N, 3) at model-frame points (N, 3).
+    def query(self, points: np.ndarray, gradient: bool = True
+              ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Signed distances (N,) and gradients (N, 3) at model-frame points (N, 3); without
+        ``gradient`` (ray searches, trial steps) only the distances, and None.
 
         Outside the grid the value grows with the distance to the grid (an upper bound of the
         true distance) and the gradient points back towards the grid, so far-away points are
@@ -150,36 +161,30 @@ class SignedDistanceField:
         g_clamped = np.clip(g, 0.0, shape - 1 - 1e-9)
         i0 = np.floor(g_clamped).astype(np.int64)
         f = g_clamped - i0
-        v = self.values
-        nx, ny, nz = v.shape
-        flat = v.ravel()
+        _, ny, nz = self.values.shape
+        flat = self.values.ravel()
         base = (i0[:, 0] * ny + i0[:, 1]) * nz + i0[:, 2]
-        offsets = {(a, b, c): (a * ny + b) * nz + c for a in (0, 1) for b in (0, 1) for c in (0, 1)}
-        corner = {key: flat[base + off].astype(float) for key, off in offsets.items()}
+        # The eight cell corners, (x, y, z) offsets 0/1 in binary order: corner[4a + 2b + c].
+        corner = [flat[base + (a * ny + b) * nz + c].astype(float)
+                  for a in (0, 1) for b in (0, 1) for c in (0, 1)]
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
         # Interpolate along z, then y, then x, keeping the partial derivatives exact.
-        c00 = corner[0, 0, 0] * (1 - fz) + corner[0, 0, 1] * fz
-        c01 = corner[0, 1, 0] * (1 - fz) + corner[0, 1, 1] * fz
-        c10 = corner[1, 0, 0] * (1 - fz) + corner[1, 0, 1] * fz
-        c11 = corner[1, 1, 0] * (1 - fz) + corner[1, 1, 1] * fz
-        c0 = c00 * (1 - fy) + c01 * fy
-        c1 = c10 * (1 - fy) + c11 * fy
-        value = c0 * (1 - fx) + c1 * fx
-        d_dx = c1 - c0
-        d_dy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
-        dz00 = corner[0, 0, 1] - corner[0, 0, 0]
-        dz01 = corner[0, 1, 1] - corner[0, 1, 0]
-        dz10 = corner[1, 0, 1] - corner[1, 0, 0]
-        dz11 = corner[1, 1, 1] - corner[1, 1, 0]
-        d_dz = (dz00 * (1 - fy) + dz01 * fy) * (1 - fx) + (dz10 * (1 - fy) + dz11 * fy) * fx
-        grad = np.column_stack([d_dx, d_dy, d_dz]) / self.spacing
-
+        c00, c01, c10, c11 = (corner[i] + (corner[i + 1] - corner[i]) * fz for i in (0, 2, 4, 6))
+        c0 = c00 + (c01 - c00) * fy
+        c1 = c10 + (c11 - c10) * fy
+        value = c0 + (c1 - c0) * fx
         outside = (g - g_clamped) * self.spacing
         dist_out = np.linalg.norm(outside, axis=1)
         far = dist_out > 0
+        value = value + dist_out
+        if not gradient:
+            return value, None
+        dz00, dz01, dz10, dz11 = (corner[i + 1] - corner[i] for i in (0, 2, 4, 6))
+        d_dz = (dz00 + (dz01 - dz00) * fy) * (1 - fx) + (dz10 + (dz11 - dz10) * fy) * fx
+        d_dy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
+        grad = np.column_stack([c1 - c0, d_dy, d_dz]) / self.spacing
         if np.any(far):
             # Clamped axes no longer move the interpolant; the distance outside takes over.
             grad[outside != 0] = 0.0
-            value = value + dist_out
             grad[far] += outside[far] / dist_out[far, None]
         return value, grad

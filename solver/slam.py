@@ -35,7 +35,7 @@ import numpy as np
 
 from .alignment import align_view_in_image
 from .camera import Camera
-from .geometry import Pose, box_corners
+from .geometry import Pose
 from .measurement import ResectionPlane, angle_covariance, fit_resection_plane
 from .observations import LABELS, PIN_LABELS, ViewObservation
 from .optimizer import (
@@ -97,11 +97,18 @@ class SolverConfig:
     # (longer only crawls; every silhouette is refined together next).
     coarse_pins: LMOptions = LMOptions(max_iterations=4, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
+    light_mesh_min_scale: float = 10.0  # bone stages at this scale or wider trace the light mesh
+    # Every silhouette at once, the start of the joint stage (which settles the plane).
+    coarse_all: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
     fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3)
     # The joint stage's edge points are held at the depth where their rays grazed the model
     # at the coarse poses; after this many iterations they are seated again at the poses
     # reached, and the stage finished from there (held at stale depths, they bias the fit).
     joint_seated_iterations: int = 3
+    # The joint stages end once an iteration moves neither angle by more than this: the edge
+    # points go on creeping along the curved pin surfaces (small cost decreases, rejected
+    # Gauss-Newton steps) long after the resection plane stopped moving.
+    settled_angle_deg: float = 0.005
     min_view_separation_deg: float = 15.0
     min_bone_points: int = 50
     min_pin_points: int = 20
@@ -153,6 +160,30 @@ def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
     return pixels[np.sort(first)]
 
 
+def _ray_depths_in_box(rays: np.ndarray, T_body_cam: Pose, box: np.ndarray) -> np.ndarray:
+    """Depth interval (N, 2) in which each camera ray ``z * ray`` (unit-depth rays) crosses the
+    body-frame box ``box`` (2, 3) (slab test). A ray that misses the box gets the empty
+    interval at its closest approach to the box's centre."""
+    origin = T_body_cam.t
+    direction = rays @ T_body_cam.R.T  # body-frame direction per unit depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = (box[0] - origin) / direction
+        t1 = (box[1] - origin) / direction
+    # An axis the ray runs parallel to constrains nothing if the source lies within its slab.
+    parallel = direction == 0
+    inside = (origin >= box[0]) & (origin <= box[1])
+    t0 = np.where(parallel, np.where(inside, -np.inf, np.inf), t0)
+    t1 = np.where(parallel, np.where(inside, np.inf, -np.inf), t1)
+    near = np.max(np.minimum(t0, t1), axis=1)
+    far = np.min(np.maximum(t0, t1), axis=1)
+    missed = ~(far >= near)
+    if np.any(missed):
+        centre = box.mean(axis=0) - origin
+        closest = direction[missed] @ centre / np.sum(direction[missed] ** 2, axis=1)
+        near[missed] = far[missed] = closest
+    return np.column_stack([near, far])
+
+
 def seat_on_rays(
     model: RigidModel, T_cam_body: Pose, camera: Camera, pixels: np.ndarray, step_mm: float
 ) -> np.ndarray:
@@ -161,32 +192,31 @@ def seat_on_rays(
     Each ray's point is where the model's signed distance along it is least: the tangent
     point of a ray that grazes, the deepest point of one that just cuts in (so noise on
     either side of the outline is charged alike), the closest approach of one that misses.
-    The ray is searched over the model's depth range at ``_SEAT_COARSE`` steps, then at
-    ``step_mm`` around the best, then refined to the vertex of a parabola.
+    Each ray is searched where it crosses the distance field's box, at ``_SEAT_COARSE``
+    steps, then at ``step_mm`` around the best, then refined to the vertex of a parabola.
     """
-    near_far = T_cam_body.apply(box_corners(*model.sdf.bounds()))[:, 2]
     rays = camera.rays(pixels)
     rays = rays / rays[:, 2:3]  # unit depth
     T_body_cam = T_cam_body.inverse()
-
-    def distances(z: np.ndarray) -> np.ndarray:
-        """Signed distances (rays, samples) at depths ``z`` (samples,) or (rays, samples)."""
-        z = np.broadcast_to(z, (len(rays), z.shape[-1]))
-        samples = (rays[:, None, :] * z[:, :, None]).reshape(-1, 3)
-        return model.sdf.query(T_body_cam.apply(samples))[0].reshape(z.shape)
-
-    coarse_step = _SEAT_COARSE * step_mm
     # A model that went behind the source (a solve gone astray) still gets points, at the
     # nearest depth searched; the gates then refuse the solve.
-    near = max(near_far.min(), 10.0)
-    z = np.arange(near, max(near_far.max(), near) + coarse_step, coarse_step)
-    around = z[np.argmin(distances(z), axis=1)]
+    depths = np.maximum(_ray_depths_in_box(rays, T_body_cam, model.sdf.bounds()), 10.0)
+
+    def distances(z: np.ndarray) -> np.ndarray:
+        """Signed distances (rays, samples) at depths ``z`` (rays, samples)."""
+        samples = (rays[:, None, :] * z[:, :, None]).reshape(-1, 3)
+        return model.sdf.query(T_body_cam.apply(samples), gradient=False)[0].reshape(z.shape)
+
+    coarse_step = _SEAT_COARSE * step_mm
+    samples = int(np.ceil(np.max(depths[:, 1] - depths[:, 0]) / coarse_step)) + 1
+    z = np.minimum(depths[:, :1] + coarse_step * np.arange(samples), depths[:, 1:])
+    rows = np.arange(len(pixels))
+    around = z[rows, np.argmin(distances(z), axis=1)]
     offsets = np.arange(-_SEAT_COARSE, _SEAT_COARSE + 1) * step_mm
     z_fine = around[:, None] + offsets[None, :]
     d = distances(z_fine)
     best = np.clip(np.argmin(d, axis=1), 1, len(offsets) - 2)
     # Near a grazing point the distance along the ray is a parabola: refine to its vertex.
-    rows = np.arange(len(pixels))
     d_minus, d_0, d_plus = d[rows, best - 1], d[rows, best], d[rows, best + 1]
     curvature = d_plus - 2.0 * d_0 + d_minus
     shift = np.where(curvature > 1e-9, 0.5 * (d_minus - d_plus) / np.maximum(curvature, 1e-9), 0.0)
@@ -264,7 +294,9 @@ class JointProblem:
         return points, ranges
 
     def silhouette_terms(self, labels: tuple[str, ...], weight: float, loss: RobustLoss,
-                         freeze_outline: bool = False) -> list[Term]:
+                         freeze_outline: bool = False, light: bool = False) -> list[Term]:
+        """E_mp of ``labels`` in every view; ``light`` traces the bone's lighter mesh (the
+        set-up search's), enough under a wide robust scale at a quarter of the cost."""
         c = self.config
         terms: list[Term] = []
         for k, view in enumerate(self.views):
@@ -272,7 +304,8 @@ class JointProblem:
                 if len(view.contours[label]) == 0:
                     continue
                 terms.append(ModelProjectionTerm(
-                    "E_mp", k, self.body_index(label), view.camera, self.model(label).contour,
+                    "E_mp", k, self.body_index(label), view.camera,
+                    self.model(label).coarse_contour if light else self.model(label).contour,
                     view.distance_map(label), self.pixels[k, label], c.sigma_px,
                     c.silhouette_spacing_px,
                     outer_only=(label == "bone"), weight=weight, loss=loss,
@@ -303,6 +336,28 @@ class JointProblem:
         return terms
 
 
+class _SettledAngles:
+    """Iteration callback that ends a stage once an accepted step moved neither resection
+    angle (CTR, STR) by more than ``SolverConfig.settled_angle_deg``."""
+
+    def __init__(self, problem: JointProblem, state: State):
+        self.problem = problem
+        self.angles = self._angles(state)
+
+    def _angles(self, state: State) -> np.ndarray:
+        plan = self.problem.plan
+        plane = fit_resection_plane(list(state.poses[self.problem.n_views:]), plan.pin_length(),
+                                    plan.landmarks)
+        return np.degrees([plane.ctr, plane.str_])
+
+    def __call__(self, info: IterationInfo) -> str | None:
+        angles = self._angles(info.state)
+        moved = float(np.max(np.abs(angles - self.angles)))
+        self.angles = angles
+        limit = self.problem.config.settled_angle_deg
+        return f"resection angles settled (moved {moved:.4f} <= {limit} deg)" if moved <= limit else None
+
+
 class _Schedule:
     """The stages of each method, run one after another on a shared state.
 
@@ -319,8 +374,16 @@ class _Schedule:
         self.iterations, self.seconds = 0, 0.0
 
     def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
-           name: str) -> tuple[State, SolveReport]:
-        stage = None if self.callback is None else (lambda info: self.callback(name, info))
+           name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
+        """One optimiser stage; with ``until_settled`` it also ends once the resection
+        angles stop moving (:class:`_SettledAngles`)."""
+        settled = _SettledAngles(self.problem, state) if until_settled else None
+
+        def stage(info: IterationInfo) -> str | None:
+            if self.callback is not None:
+                self.callback(name, info)
+            return None if settled is None else settled(info)
+
         state, report = levenberg_marquardt(terms, state, held, options, stage)
         self.iterations += report.iterations
         self.seconds += report.seconds
@@ -334,7 +397,8 @@ class _Schedule:
         """Views on the bone's silhouette, with a robust scale shrinking from wide to tight."""
         p = self.problem
         for scale in p.config.coarse_loss_scales:
-            state, _ = self.lm(p.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale))
+            light = scale >= p.config.light_mesh_min_scale
+            state, _ = self.lm(p.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale), light=light)
                                + self.odometry, state, p.fixed_dofs(pins=True),
                                p.config.coarse, f"coarse bone x{scale:g}")
         return state
@@ -363,14 +427,15 @@ class _Schedule:
         # slam: every silhouette at once (the pins tie the views together), then the joint
         # energy with edge points seated where their rays graze the models.
         state, _ = self.lm(p.silhouette_terms(LABELS, 1.0, tight) + self.odometry, state,
-                           p.fixed_dofs(), c.coarse, "coarse all")
+                           p.fixed_dofs(), c.coarse_all, "coarse all")
         first = LMOptions(max_iterations=c.joint_seated_iterations,
                           relative_tolerance=c.fine.relative_tolerance)
         for options, name in ((first, "joint"), (c.fine, "joint reseated")):
             points, ranges = p.seated_points(state.poses)
             terms = p.edge_terms(points, ranges) + p.silhouette_terms(
                 LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
-            state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), options, name)
+            state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), options,
+                                    name, until_settled=True)
         return state, terms, report
 
     def back_projection(self, state: State, split: bool) -> tuple[State, list[Term], SolveReport]:

@@ -125,7 +125,7 @@ class BackProjectionTerm:
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         X = state.points[self.point_ids]
-        d, grad = self.sdf.query(X)
+        d, grad = self.sdf.query(X, gradient=jacobians)
         along = np.einsum("ij,ij->i", X - self.seated, self.ray_directions)
         r = np.column_stack([d / self.sigma_mm, along / self.sigma_depth_mm])
         if not jacobians:

@@ -1,4 +1,5 @@
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import igl
 import numpy as np
@@ -43,6 +44,20 @@ def test_sdf_matches_exact_distance_and_its_gradient(tmp_path):
     # Far outside the grid the distance keeps growing and points back.
     far_value, far_grad = field.query(np.array([[30.0, 0.0, 40.0]]))
     assert far_value[0] > 25 and far_grad[0, 0] > 0.9
+    # Distances alone (ray searches, trial steps) are the same values.
+    assert np.array_equal(field.query(pts, gradient=False)[0], value)
+    assert field.query(pts, gradient=False)[1] is None
+
+
+def test_sdf_cache_entry_written_by_several_workers_at_once(tmp_path):
+    """Parallel workers building one plan write the same entry together: none may fail or
+    leave a temporary file, and the entry reads back whole."""
+    field = SignedDistanceField.build([build_pin()], 0.4, 1.6)
+    path = tmp_path / "sdf-shared.npz"
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(lambda _: field.save(path), range(16)))
+    assert [p.name for p in tmp_path.iterdir()] == ["sdf-shared.npz"]
+    assert np.array_equal(SignedDistanceField.load(path).values, field.values)
 
 
 @pytest.mark.skipif(not (SHARED_DATA / "tibia-right.stl").exists(), reason="shared meshes absent")
