@@ -607,6 +607,9 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     pin_slice = slice(6 * n, 6 * (n + 2))
     dof = n_residuals - len(state.points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
+    import os
+    if os.environ.get("VF"):
+        print("VF", fine.cost / max(dof, 1), {k: v for k, v in fine.term_costs.items()}, n_residuals, dof, flush=True)
     angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
                                  plan.pin_length(), plan.landmarks)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
