@@ -21,6 +21,7 @@ for every view, so the motion between views is kept exactly as the encoders meas
 from __future__ import annotations
 
 from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
 from itertools import product
 
 import cv2
@@ -115,6 +116,56 @@ def _rotations(half_range_deg: float, step_deg: float, centre: np.ndarray) -> li
     return [centre + np.radians(np.array(o)) for o in product(offsets, repeat=3)]
 
 
+class _Hypotheses:
+    """Scores set-up hypotheses on every view. The views are scored in parallel threads:
+    most of a view's cost is OpenCV's template correlation, which releases the GIL."""
+
+    def __init__(self, contour: ContourGenerator,
+                 views: list[tuple[Pose, Camera, DistanceMap, np.ndarray]],
+                 T_tibia_anat: Pose, search: SetupSearch, pool: ThreadPoolExecutor):
+        self.contour, self.views, self.search, self.pool = contour, views, search, pool
+        self.T_tibia_anat, self.knee = T_tibia_anat, T_tibia_anat.t
+        self.fields = [_ViewField(camera, dmap, observed, search)
+                       for _, camera, dmap, observed in views]
+
+    def correction(self, rotvec: np.ndarray, knee_at: np.ndarray) -> Pose:
+        """The bone turned by ``rotvec`` (anatomical axes) about its knee centre, which is
+        then carried to ``knee_at`` (frame of the initial guess)."""
+        A = self.T_tibia_anat
+        return Pose(np.eye(3), knee_at - self.knee) @ A @ Pose(so3_exp(rotvec), np.zeros(3)) @ A.inverse()
+
+    def _view_score(self, C: Pose, k: int) -> tuple[float, np.ndarray]:
+        (T, camera, _, _), search = self.views[k], self.search
+        T_c = T @ C
+        S = self.contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
+                                        fov_margin_px=-float(search.search_px))
+        if len(S) < 10:
+            return np.inf, np.zeros(2)
+        return self.fields[k].best_shift(camera.project(T_c.apply(S)))
+
+    def evaluate(self, rotvec: np.ndarray, knee_at: np.ndarray) -> tuple[float, list[np.ndarray]]:
+        """Summed view scores of a hypothesis and each view's best image shift (infinite,
+        with no shifts, when the outline leaves some image)."""
+        C = self.correction(rotvec, knee_at)
+        scored = list(self.pool.map(lambda k: self._view_score(C, k), range(len(self.views))))
+        total = sum(score for score, _ in scored)
+        return (total, [shift for _, shift in scored]) if np.isfinite(total) else (np.inf, [])
+
+    def seen_at(self, pixels: list[np.ndarray]) -> np.ndarray:
+        """The point (frame of the initial guess) the views see at ``pixels``, one each."""
+        origins, directions = [], []
+        for (T, camera, _, _), pixel in zip(self.views, pixels):
+            T_tibia_cam = T.inverse()
+            origins.append(T_tibia_cam.t)
+            directions.append(T_tibia_cam.rotate(camera.rays(pixel[None])[0]))
+        return triangulate_rays(np.array(origins), np.array(directions))[0]
+
+    def shifted(self, knee_at: np.ndarray, shifts: list[np.ndarray]) -> np.ndarray:
+        """The knee moved by each view's best image shift."""
+        return self.seen_at([camera.project(T.apply(knee_at[None]))[0] + shift
+                             for (T, camera, _, _), shift in zip(self.views, shifts)])
+
+
 def search_setup(
     contour: ContourGenerator,
     views: list[tuple[Pose, Camera, DistanceMap, np.ndarray]],
@@ -123,77 +174,43 @@ def search_setup(
 ) -> Pose:
     """The correction ``C`` (tibia frame) that best overlays the bone on every view;
     ``views`` holds each view's initial pose, camera, bone distance map and bone contour."""
-    fields = [_ViewField(camera, dmap, observed, search) for _, camera, dmap, observed in views]
-    knee = T_tibia_anat.t
-
-    def correction(rotvec: np.ndarray, knee_at: np.ndarray) -> Pose:
-        """The bone turned by ``rotvec`` (anatomical axes) about its knee centre, which is
-        then carried to ``knee_at`` (frame of the initial guess)."""
-        return (Pose(np.eye(3), knee_at - knee) @ T_tibia_anat
-                @ Pose(so3_exp(rotvec), np.zeros(3)) @ T_tibia_anat.inverse())
-
-    def evaluate(rotvec: np.ndarray, knee_at: np.ndarray) -> tuple[float, list[np.ndarray]]:
-        C, total, shifts = correction(rotvec, knee_at), 0.0, []
-        for (T, camera, _, _), view_field in zip(views, fields):
-            T_c = T @ C
-            S = contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
-                                       fov_margin_px=-float(search.search_px))
-            if len(S) < 10:
-                return np.inf, []
-            score, shift = view_field.best_shift(camera.project(T_c.apply(S)))
-            total += score
-            shifts.append(shift)
-        return total, shifts
-
-    def seen_at(pixels: list[np.ndarray]) -> np.ndarray:
-        """The point (frame of the initial guess) the views see at ``pixels``, one each."""
-        origins, directions = [], []
-        for (T, camera, _, _), pixel in zip(views, pixels):
-            T_tibia_cam = T.inverse()
-            origins.append(T_tibia_cam.t)
-            directions.append(T_tibia_cam.rotate(camera.rays(pixel[None])[0]))
-        return triangulate_rays(np.array(origins), np.array(directions))[0]
-
-    def shifted(knee_at: np.ndarray, shifts: list[np.ndarray]) -> np.ndarray:
-        """The knee moved by each view's best image shift."""
-        return seen_at([camera.project(T.apply(knee_at[None]))[0] + shift
-                        for (T, camera, _, _), shift in zip(views, shifts)])
-
-    # The knee first where the contours are (the C-arm is aimed at it; the guess may be far
-    # enough off to leave the bone out of the image), then where the views' best shifts put
-    # it (a wrong depth scales the outline, which no rotation explains), then the rotation
-    # on a coarse grid and finer ones, the knee placed again after each.
-    knee_at = seen_at([observed.mean(axis=0) for *_, observed in views])
-    score, shifts = evaluate(np.zeros(3), knee_at)
-    if not np.isfinite(score):
-        return Pose.identity()
-    knee_at = shifted(knee_at, shifts)
-    # Coarse grid: every hypothesis scored with the knee where no rotation put it, which a
-    # rotation tens of degrees away sees at a somewhat wrong place and depth; the best few
-    # are scored again with the knee where their own image shifts put it.
-    coarse = sorted(((evaluate(rotvec, knee_at), rotvec)
-                     for rotvec in _rotations(search.coarse_half_range_deg,
-                                              search.coarse_step_deg, np.zeros(3))),
-                    key=lambda hypothesis: hypothesis[0][0])
-    best = (np.inf, np.zeros(3), knee_at)
-    for (score, shifts), rotvec in coarse[: search.rescored]:
-        own = knee_at
-        for _ in range(2):
-            if not np.isfinite(score):  # the outline left some image
-                break
-            own = shifted(own, shifts)
-            score, shifts = evaluate(rotvec, own)
-        if score < best[0]:
-            best = (score, rotvec, own)
-    _, best_rotvec, knee_at = best
-    for half in [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]:
-        best = (np.inf, best_rotvec, [])
-        for rotvec in _rotations(half, half, best_rotvec):
-            score, shifts = evaluate(rotvec, knee_at)
-            if score < best[0]:
-                best = (score, rotvec, shifts)
-        score, best_rotvec, shifts = best
+    with ThreadPoolExecutor(len(views)) as pool:
+        h = _Hypotheses(contour, views, T_tibia_anat, search, pool)
+        # The knee first where the contours are (the C-arm is aimed at it; the guess may be
+        # far enough off to leave the bone out of the image), then where the views' best
+        # shifts put it (a wrong depth scales the outline, which no rotation explains), then
+        # the rotation on a coarse grid and finer ones, the knee placed again after each.
+        knee_at = h.seen_at([observed.mean(axis=0) for *_, observed in views])
+        score, shifts = h.evaluate(np.zeros(3), knee_at)
         if not np.isfinite(score):
-            break
-        knee_at = shifted(knee_at, shifts)
-    return correction(best_rotvec, knee_at)
+            return Pose.identity()
+        knee_at = h.shifted(knee_at, shifts)
+        # Coarse grid: every hypothesis scored with the knee where no rotation put it, which
+        # a rotation tens of degrees away sees at a somewhat wrong place and depth; the best
+        # few are scored again with the knee where their own image shifts put it.
+        coarse = sorted(((h.evaluate(rotvec, knee_at), rotvec)
+                         for rotvec in _rotations(search.coarse_half_range_deg,
+                                                  search.coarse_step_deg, np.zeros(3))),
+                        key=lambda hypothesis: hypothesis[0][0])
+        best = (np.inf, np.zeros(3), knee_at)
+        for (score, shifts), rotvec in coarse[: search.rescored]:
+            own = knee_at
+            for _ in range(2):
+                if not np.isfinite(score):  # the outline left some image
+                    break
+                own = h.shifted(own, shifts)
+                score, shifts = h.evaluate(rotvec, own)
+            if score < best[0]:
+                best = (score, rotvec, own)
+        _, best_rotvec, knee_at = best
+        for half in [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]:
+            best = (np.inf, best_rotvec, [])
+            for rotvec in _rotations(half, half, best_rotvec):
+                score, shifts = h.evaluate(rotvec, knee_at)
+                if score < best[0]:
+                    best = (score, rotvec, shifts)
+            score, best_rotvec, shifts = best
+            if not np.isfinite(score):
+                break
+            knee_at = h.shifted(knee_at, shifts)
+        return h.correction(best_rotvec, knee_at)

@@ -28,6 +28,7 @@ quality gates and the uncertainty.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -577,10 +578,13 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     """One solve of the configured method from ``poses``, with its gates and uncertainty."""
     config, plan, n = problem.config, problem.plan, problem.n_views
     fixed = problem.fixed_dofs()
-    # Global step, shared by every method: where in each image is the bone?
-    poses = tuple(align_view_in_image(problem.bone.contour, T, view.camera,
-                                      view.distance_map("bone"))
-                  for T, view in zip(poses[:n], problem.views)) + poses[n:]
+    # Global step, shared by every method: where in each image is the bone? The views are
+    # searched in parallel threads (OpenCV's template correlation releases the GIL).
+    with ThreadPoolExecutor(n) as pool:
+        aligned = pool.map(lambda T, view: align_view_in_image(
+            problem.bone.contour, T, view.camera, view.distance_map("bone")),
+            poses[:n], problem.views)
+        poses = tuple(aligned) + poses[n:]
     schedule = _Schedule(problem, initial, callback)
     state, terms, fine = schedule.run(config.method, State(poses, np.zeros((0, 3))))
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
