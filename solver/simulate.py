@@ -20,7 +20,8 @@ from .plan import Plan
 from .silhouette import ContourGenerator
 from .slam import InitialGuess
 
-__all__ = ["SimulationConfig", "SimulatedCase", "simulate_case", "default_camera", "perturb"]
+__all__ = ["SimulationConfig", "SimulatedCase", "simulate_case", "default_camera", "perturb",
+           "segmentation_error"]
 
 # A mobile C-arm: ~1000 mm source to detector, 1024 px over a 23 cm image intensifier,
 # knee at the isocentre ~620 mm from the source.
@@ -50,6 +51,9 @@ class SimulationConfig:
     encoder_rot_sd_deg: float = 0.5
     encoder_trans_sd_mm: float = 2.0
     outline_spacing_px: float = 1.0
+    # CT segmentation error: the bone the X-rays see differs from the plan's mesh by a smooth
+    # displacement along its normals with this SD (0: the protocol of DESIGN.md section 5).
+    segmentation_sd_mm: float = 0.0
     seed: int = 0
 
     @staticmethod
@@ -153,12 +157,35 @@ def _observe(generator: ContourGenerator, T_cam_body: Pose, camera: Camera, oute
     return uv[camera.in_field(uv)]
 
 
+# The segmentation error field: this many plane waves, wavelengths in this range (mm).
+_SEGMENTATION_WAVES = 24
+_SEGMENTATION_WAVELENGTH_MM = (15.0, 60.0)
+
+
+def segmentation_error(mesh: trimesh.Trimesh, sd_mm: float, rng: np.random.Generator) -> trimesh.Trimesh:
+    """``mesh`` with every vertex moved along its normal by a smooth random field of SD
+    ``sd_mm`` (a sum of plane waves of random direction, wavelength and phase): the true
+    bone when the plan's mesh is a segmentation of it."""
+    directions = rng.normal(size=(_SEGMENTATION_WAVES, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    wavenumbers = 2 * np.pi / rng.uniform(*_SEGMENTATION_WAVELENGTH_MM, _SEGMENTATION_WAVES)
+    phases = rng.uniform(0.0, 2 * np.pi, _SEGMENTATION_WAVES)
+    vertices = np.asarray(mesh.vertices, float)
+    waves = np.sin(vertices @ (directions * wavenumbers[:, None]).T + phases)
+    displacement = sd_mm * waves.sum(axis=1) / np.sqrt(_SEGMENTATION_WAVES / 2)
+    return trimesh.Trimesh(vertices + displacement[:, None] * mesh.vertex_normals, mesh.faces,
+                           process=False)
+
+
 def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> SimulatedCase:
     rng = np.random.default_rng(config.seed)
     camera = default_camera()
     pins, ctr_deg, str_deg = _place_pins(plan, rng)
     views_true = _view_poses(plan, config.view_angles_deg, rng)
-    bone_full = ContourGenerator.from_mesh(trimesh.util.concatenate(plan.bone_meshes()))
+    bone = trimesh.util.concatenate(plan.bone_meshes())
+    if config.segmentation_sd_mm > 0:
+        bone = segmentation_error(bone, config.segmentation_sd_mm, np.random.default_rng([config.seed, 1]))
+    bone_full = ContourGenerator.from_mesh(bone)
     pin_full = ContourGenerator.from_mesh(plan.pin_mesh)
     views = []
     for k, T_cam_tibia in enumerate(views_true):

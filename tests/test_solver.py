@@ -306,3 +306,28 @@ def test_wide_setup_search_recovers_study_cases_it_used_to_miss(phantom_plan, le
     rotation_deg, translation_mm = _left_after_search(
         phantom_plan, case, list(case.initial.T_cam_tibia), SolverConfig().global_searches[1])
     assert rotation_deg < 8.0 and translation_mm < 10.0
+
+
+def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_plan):
+    """The study's optional CT segmentation error moves the bone the X-rays see by a smooth
+    field of the asked SD, and leaves the case's truth (pins, views) as it was."""
+    import trimesh
+
+    from solver.simulate import segmentation_error
+
+    bone = trimesh.util.concatenate(phantom_plan.bone_meshes())
+    moved = segmentation_error(bone, 0.5, np.random.default_rng(7))
+    displacement = np.einsum("ij,ij->i", moved.vertices - bone.vertices, bone.vertex_normals)
+    assert 0.35 < displacement.std() < 0.65 and abs(displacement.mean()) < 0.2
+    # Smooth: along an edge it changes by a fraction of a millimetre per millimetre (the
+    # shortest wavelength is 15 mm), never as independent noise per vertex would.
+    a, b = bone.edges_unique.T
+    slope = np.abs(displacement[a] - displacement[b]) / bone.edges_unique_length
+    assert np.percentile(slope, 95) < 0.3
+    plain = simulate_case(phantom_plan, SimulationConfig(seed=3))
+    mismatched = simulate_case(phantom_plan, SimulationConfig(seed=3, segmentation_sd_mm=0.5))
+    assert plain.truth_ctr_deg == mismatched.truth_ctr_deg
+    assert all(np.array_equal(a.matrix(), b.matrix()) for a, b in zip(
+        plain.truth_T_tibia_pin + plain.truth_T_cam_tibia,
+        mismatched.truth_T_tibia_pin + mismatched.truth_T_cam_tibia))
+    assert not np.array_equal(plain.views[0].contours["bone"], mismatched.views[0].contours["bone"])
