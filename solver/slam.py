@@ -115,6 +115,10 @@ class SolverConfig:
     min_pin_points: int = 20
     max_residual_rms_px: float = 4.0  # re-projection RMS above this: contours do not fit
     max_silhouette_median_px: float = 2.5  # a model's outline this far off its contour: no fit
+    # ... and a tenth of a pin's outline this far off: a pin is seen whole, so part of its
+    # outline away from any contour is a wrong pose, however well the rest lies (a pin turned
+    # about the end it shares with its contour keeps the median small).
+    max_pin_outline_p90_px: float = 6.0
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
@@ -510,14 +514,23 @@ def _contour_misfit(problem: JointProblem, state: State, rms: dict[str, float]) 
 def _outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...],
                     limit_px: float) -> str | None:
     """The first model of ``labels`` whose silhouette, traced at ``state``, lies further
-    than ``limit_px`` (median) from its observed contour in some view, said in words."""
+    than ``limit_px`` (median, both sides) from its observed contour in some view, or, for
+    a pin, a tenth of whose outline lies further than ``max_pin_outline_p90_px``, said in
+    words."""
+    pin_limit_px = problem.config.max_pin_outline_p90_px
     for term in problem.silhouette_terms(labels, 1.0, RobustLoss("l2")):
-        distances = np.abs(term.linearize(state, jacobians=False).residuals)
-        median_px = float(np.median(distances)) * problem.config.sigma_px
+        outline, contour = term.distances_px(state)
+        label = "bone" if term.body is None else PIN_LABELS[term.body - problem.n_views]
+        where = f"the {label} outline in view {problem.views[term.view].view_id}"
+        median_px = float(np.median(np.concatenate([outline, contour])))
         if median_px > limit_px:
-            label = "bone" if term.body is None else PIN_LABELS[term.body - problem.n_views]
-            return (f"the {label} outline in view {problem.views[term.view].view_id} does not "
-                    f"lie on its contour (median distance {median_px:.1f} px > {limit_px:.1f} px)")
+            return (f"{where} does not lie on its contour (median distance {median_px:.1f} px "
+                    f"> {limit_px:.1f} px)")
+        if term.body is not None and len(outline):
+            p90_px = float(np.percentile(outline, 90))
+            if p90_px > pin_limit_px:
+                return (f"{where} leaves its contour (a tenth of it lies {p90_px:.0f} px or more "
+                        f"away > {pin_limit_px:.1f} px)")
     return None
 
 

@@ -185,6 +185,13 @@ class ModelProjectionTerm:
         return self.contour.outline_points(T_cam_body, self.camera, self.spacing_px,
                                            outer_only=self.outer_only, interior=interior)
 
+    def distances_px(self, state: State) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel distances of the outline traced at ``state`` to the observed contour, and of
+        each observed contour pixel to the outline (the two sides of the residual)."""
+        self._outline = None
+        r = np.abs(self.linearize(state, jacobians=False).residuals[:, 0]) * self.sigma_px
+        return r[: len(r) - len(self.observed)], r[len(r) - len(self.observed):]
+
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         if self._outline is None or (jacobians and not self.freeze_outline):
             self._outline = self._trace(self._T_cam_body(state))
