@@ -257,7 +257,8 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
     from solver.geometry import rotation_about
 
     turned = Pose(truth[-1].R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), truth[-1].t)
-    reason = _contour_misfit(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))), {})
+    strict = JointProblem(real_plan, case.views, SolverConfig(max_pin_outline_p90_px=6.0))
+    reason = _contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))), {})
     assert reason is not None and "pin2 outline" in reason and "leaves its contour" in reason
 
 
