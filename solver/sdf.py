@@ -175,7 +175,6 @@ class SignedDistanceField:
         value = c0 + (c1 - c0) * fx
         outside = (g - g_clamped) * self.spacing
         dist_out = np.linalg.norm(outside, axis=1)
-        far = dist_out > 0
         value = value + dist_out
         if not gradient:
             return value, None
@@ -183,6 +182,7 @@ class SignedDistanceField:
         d_dz = (dz00 + (dz01 - dz00) * fy) * (1 - fx) + (dz10 + (dz11 - dz10) * fy) * fx
         d_dy = (c01 - c00) * (1 - fx) + (c11 - c10) * fx
         grad = np.column_stack([c1 - c0, d_dy, d_dz]) / self.spacing
+        far = dist_out > 0
         if np.any(far):
             # Clamped axes no longer move the interpolant; the distance outside takes over.
             grad[outside != 0] = 0.0

@@ -132,7 +132,8 @@ class _Hypotheses:
         """The bone turned by ``rotvec`` (anatomical axes) about its knee centre, which is
         then carried to ``knee_at`` (frame of the initial guess)."""
         A = self.T_tibia_anat
-        return Pose(np.eye(3), knee_at - self.knee) @ A @ Pose(so3_exp(rotvec), np.zeros(3)) @ A.inverse()
+        turned = A @ Pose(so3_exp(rotvec), np.zeros(3)) @ A.inverse()
+        return Pose(np.eye(3), knee_at - self.knee) @ turned
 
     def _view_score(self, C: Pose, k: int) -> tuple[float, np.ndarray]:
         (T, camera, _, _), search = self.views[k], self.search

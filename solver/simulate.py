@@ -162,7 +162,8 @@ _SEGMENTATION_WAVES = 24
 _SEGMENTATION_WAVELENGTH_MM = (15.0, 60.0)
 
 
-def segmentation_error(mesh: trimesh.Trimesh, sd_mm: float, rng: np.random.Generator) -> trimesh.Trimesh:
+def segmentation_error(mesh: trimesh.Trimesh, sd_mm: float,
+                       rng: np.random.Generator) -> trimesh.Trimesh:
     """``mesh`` with every vertex moved along its normal by a smooth random field of SD
     ``sd_mm`` (a sum of plane waves of random direction, wavelength and phase): the true
     bone when the plan's mesh is a segmentation of it."""
@@ -184,7 +185,9 @@ def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> 
     views_true = _view_poses(plan, config.view_angles_deg, rng)
     bone = trimesh.util.concatenate(plan.bone_meshes())
     if config.segmentation_sd_mm > 0:
-        bone = segmentation_error(bone, config.segmentation_sd_mm, np.random.default_rng([config.seed, 1]))
+        # Its own random stream, so the truth (pins, views) stays that of the same seed.
+        bone = segmentation_error(bone, config.segmentation_sd_mm,
+                                  np.random.default_rng([config.seed, 1]))
     bone_full = ContourGenerator.from_mesh(bone)
     pin_full = ContourGenerator.from_mesh(plan.pin_mesh)
     views = []

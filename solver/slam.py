@@ -303,7 +303,8 @@ class JointProblem:
     def silhouette_terms(self, labels: tuple[str, ...], weight: float, loss: RobustLoss,
                          freeze_outline: bool = False, light: bool = False) -> list[Term]:
         """E_mp of ``labels`` in every view; ``light`` traces the bone's lighter mesh (the
-        set-up search's), enough under a wide robust scale at a quarter of the cost."""
+        set-up search's), enough under a wide robust scale at a quarter of the cost (a pin's
+        mesh is light already)."""
         c = self.config
         terms: list[Term] = []
         for k, view in enumerate(self.views):
@@ -312,7 +313,8 @@ class JointProblem:
                     continue
                 terms.append(ModelProjectionTerm(
                     "E_mp", k, self.body_index(label), view.camera,
-                    self.model(label).coarse_contour if light else self.model(label).contour,
+                    (self.bone.coarse_contour if light and label == "bone"
+                     else self.model(label).contour),
                     view.distance_map(label), self.pixels[k, label], c.sigma_px,
                     c.silhouette_spacing_px,
                     outer_only=(label == "bone"), weight=weight, loss=loss,
@@ -362,7 +364,9 @@ class _SettledAngles:
         moved = float(np.max(np.abs(angles - self.angles)))
         self.angles = angles
         limit = self.problem.config.settled_angle_deg
-        return f"resection angles settled (moved {moved:.4f} <= {limit} deg)" if moved <= limit else None
+        if moved > limit:
+            return None
+        return f"resection angles settled (moved {moved:.4f} <= {limit} deg)"
 
 
 class _Schedule:
@@ -404,9 +408,9 @@ class _Schedule:
         """Views on the bone's silhouette, with a robust scale shrinking from wide to tight."""
         p = self.problem
         for scale in p.config.coarse_loss_scales:
-            light = scale >= p.config.light_mesh_min_scale
-            state, _ = self.lm(p.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale), light=light)
-                               + self.odometry, state, p.fixed_dofs(pins=True),
+            terms = p.silhouette_terms(("bone",), 1.0, RobustLoss("cauchy", scale),
+                                       light=scale >= p.config.light_mesh_min_scale)
+            state, _ = self.lm(terms + self.odometry, state, p.fixed_dofs(pins=True),
                                p.config.coarse, f"coarse bone x{scale:g}")
         return state
 
@@ -626,9 +630,6 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     pin_slice = slice(6 * n, 6 * (n + 2))
     dof = n_residuals - len(state.points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
-    import os
-    if os.environ.get("VF"):
-        print("VF", fine.cost / max(dof, 1), {k: v for k, v in fine.term_costs.items()}, n_residuals, dof, flush=True)
     angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
                                  plan.pin_length(), plan.landmarks)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
