@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .geometry import row_norms
+
 __all__ = ["Camera"]
 
 # Points closer to the source than this (mm) are treated as behind the camera.
@@ -90,7 +92,7 @@ class Camera:
         )
         if self.fov_radius_px is not None:
             centre = np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
-            inside &= np.linalg.norm(uv - centre, axis=1) <= self.fov_radius_px - margin_px
+            inside &= row_norms(uv - centre) <= self.fov_radius_px - margin_px
         return inside
 
     def to_json(self) -> dict:

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera
+from .geometry import row_norms
 
 __all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation"]
 
@@ -94,7 +95,7 @@ class DistanceMap:
         value = top * (1 - fv) + bottom * fv
         grad = np.column_stack([(v10 - v00) * (1 - fv) + (v11 - v01) * fv, bottom - top])
         outside = local - clamped
-        dist_out = np.linalg.norm(outside, axis=1)
+        dist_out = row_norms(outside)
         far = dist_out > 0
         if np.any(far):
             grad[outside != 0] = 0.0

@@ -20,6 +20,8 @@ import igl
 import numpy as np
 import trimesh
 
+from .geometry import row_norms
+
 __all__ = ["SignedDistanceField", "mesh_digest"]
 
 # Bump when the sampling scheme changes so stale caches are not reused.
@@ -174,7 +176,7 @@ class SignedDistanceField:
         c1 = c10 + (c11 - c10) * fy
         value = c0 + (c1 - c0) * fx
         outside = (g - g_clamped) * self.spacing
-        dist_out = np.linalg.norm(outside, axis=1)
+        dist_out = row_norms(outside)
         value = value + dist_out
         if not gradient:
             return value, None

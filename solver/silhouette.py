@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from .camera import Camera
-from .geometry import Pose, box_corners
+from .geometry import Pose, box_corners, row_norms
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
 
@@ -101,6 +101,11 @@ class ContourGenerator:
         used, index = np.unique(edges, return_inverse=True)
         uv = camera.project(T_cam_model.apply(self.vertices[used])) / downscale
         a, b = uv[index.reshape(-1, 2)[:, 0]], uv[index.reshape(-1, 2)[:, 1]]
+        # Only the outline's bounding box (within the image) is accumulated: outside it no
+        # row is crossed, and left of every crossing the winding number is zero.
+        (left, upper), (right, lower) = (np.clip(np.ceil(uv.min(axis=0)), 0, [width, height]),
+                                         np.clip(np.ceil(uv.max(axis=0)), 0, [width, height]))
+        left, upper, right, lower = int(left), int(upper), int(right), int(lower)
         # Each edge crosses the rows whose centre lies in [top, bottom) of its span.
         downwards = b[:, 1] > a[:, 1]
         top = np.where(downwards[:, None], a, b)
@@ -108,14 +113,16 @@ class ContourGenerator:
         first_row = np.clip(np.ceil(top[:, 1]), 0, height).astype(np.int64)
         rows_crossed = np.clip(np.ceil(bottom[:, 1]), 0, height).astype(np.int64) - first_row
         edge, place = _runs(rows_crossed)
-        row = first_row[edge] + place
-        fraction = (row - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
+        row = first_row[edge] + place - upper
+        fraction = (row + upper - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
         x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
-        column = np.clip(np.ceil(x), 0, width).astype(np.int64)
-        crossings = np.bincount(row * (width + 1) + column,
+        column = np.clip(np.ceil(x), left, right).astype(np.int64) - left
+        box_w = right - left
+        crossings = np.bincount(row * (box_w + 1) + column,
                                 weights=np.where(downwards, 1.0, -1.0)[edge],
-                                minlength=height * (width + 1)).reshape(height, width + 1)
-        mask = (np.abs(np.cumsum(crossings, axis=1)[:, :width]) > 0.5).astype(np.uint8)
+                                minlength=(lower - upper) * (box_w + 1)).reshape(lower - upper, box_w + 1)
+        mask = np.zeros((height, width), np.uint8)
+        mask[upper:lower, left:right] = np.abs(np.cumsum(crossings, axis=1)[:, :box_w]) > 0.5
         # Pixels the outline passes through belong to the footprint too, as when faces are
         # filled with their edges drawn: an outline point always falls in a footprint pixel.
         steps = np.ceil(np.max(np.abs(b - a), axis=1)).astype(np.int64) + 1
@@ -137,7 +144,7 @@ class ContourGenerator:
         a bound on how far any of its points moved in the image."""
         corners = self.bounding_box_corners
         uv_a, uv_b = camera.project(T_a.apply(corners)), camera.project(T_b.apply(corners))
-        return float(np.max(np.linalg.norm(uv_a - uv_b, axis=1)))
+        return float(np.max(row_norms(uv_a - uv_b)))
 
     def interior(self, T_cam_model: Pose, camera: Camera) -> np.ndarray:
         """Mask (1/4 resolution) of the footprint's interior, more than a mask pixel deep.
@@ -167,7 +174,7 @@ class ContourGenerator:
         a, b = self.vertices[edges[:, 0]], self.vertices[edges[:, 1]]
         uv_a = camera.project(T_cam_model.apply(a))
         uv_b = camera.project(T_cam_model.apply(b))
-        counts = np.maximum(1, np.ceil(np.linalg.norm(uv_b - uv_a, axis=1) / spacing_px)).astype(int)
+        counts = np.maximum(1, np.ceil(row_norms(uv_b - uv_a) / spacing_px)).astype(int)
         edge_index, place = _runs(counts)
         # Sample at the centres of equal sub-segments, so shared end-points are not doubled.
         s = (place + 0.5) / counts[edge_index]

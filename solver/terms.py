@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .camera import Camera
-from .geometry import Pose, hat, so3_log, so3_right_jacobian_inverse
+from .geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
 from .observations import DistanceMap
 from .optimizer import Linearization, RobustLoss, State
 from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
@@ -56,7 +56,7 @@ def projected(
 
     def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
         """(N, 2, 6) from ``G`` = d uv / d(T p) R (N, 2, 3) and the pose's source points p."""
-        return np.concatenate([G, np.cross(p[:, None, :], G)], axis=2)
+        return np.concatenate([G, cross(p[:, None, :], G)], axis=2)
 
     G_view = (J_proj.reshape(-1, 3) @ T_view.R).reshape(-1, 2, 3)
     if body is None:
@@ -204,9 +204,11 @@ class ModelProjectionTerm:
         uv, J_view, J_body, _ = projected(state, self.view, self.body, S, self.camera, jacobians)
         dist, grad = self.distance_map.query(uv)
         if jacobians or self._nearest is None:
-            self._nearest = cKDTree(uv).query(self.observed)[1]
+            # A few hundred points, queried once: an unbalanced, uncompacted tree builds faster.
+            tree = cKDTree(uv, balanced_tree=False, compact_nodes=False)
+            self._nearest = tree.query(self.observed)[1]
         nearest = self._nearest
-        nearest_dist = np.linalg.norm(uv[nearest] - self.observed, axis=1)
+        nearest_dist = row_norms(uv[nearest] - self.observed)
         r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px
         if not jacobians:
             return Linearization(r)
