@@ -84,5 +84,5 @@ def test_speed_benchmark_reports_time_iterations_stages_and_memory(tmp_path):
     (run,) = doc["runs"]
     accepted = sum(stage["iterations"] for stage in run["stages"].values())  # callbacks
     assert 0 < accepted <= run["iterations"]
-    assert "joint" in run["stages"] and doc["median_seconds"] > 0
+    assert "joint" in run["stages"] and doc["median_seconds"] > 0 and run["cpu_seconds"] > 0
     assert 0 < doc["peak_allocated_mb_per_solve"] < doc["process_peak_rss_mb"]
