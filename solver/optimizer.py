@@ -190,8 +190,9 @@ class NormalEquations:
     @cached_property
     def coupling(self) -> tuple[np.ndarray, np.ndarray, list]:
         """Each point's coupling blocks padded to a fixed count ``k`` (``W`` (X, k, 6, 3);
-        the dummy pose P fills the gaps in ``pose_of`` (X, k)), and for every slot pair the
-        selector that sums its (6, 6) reductions into the (P+1)^2 pose-pair blocks. It does
+        the dummy pose P fills the gaps in ``pose_of`` (X, k)), and for every slot pair a <= b
+        the selector that sums its (6, 6) reductions into the (P+1)^2 pose-pair blocks (the
+        pair b, a is their transpose). It does
         not depend on the damping, so the trial steps of one iteration share it."""
         P, X = len(self.g_p) // 6, len(self.H_xx)
         first = np.searchsorted(self.pair_point, np.arange(X))
@@ -202,7 +203,7 @@ class NormalEquations:
         W[self.pair_point, slot] = self.H_px
         pose_of[self.pair_point, slot] = self.pair_pose
         pairs = [(a, b, _selector(pose_of[:, a] * (P + 1) + pose_of[:, b], (P + 1) ** 2))
-                 for a in range(k_max) for b in range(k_max)]
+                 for a in range(k_max) for b in range(a, k_max)]
         return W, pose_of, pairs
 
 
@@ -265,11 +266,13 @@ def _reduced_system(
 
     W, pose_of, pairs = ne.coupling
     Y = W @ V_inv[:, None]  # (X, k, 6, 3)
-    blocks = np.zeros(((P + 1) ** 2, 36))
+    blocks = np.zeros((P + 1, P + 1, 6, 6))
     for a, b, selector in pairs:
         reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
-        blocks += selector @ reduction.reshape(-1, 36)
-    blocks = blocks.reshape(P + 1, P + 1, 6, 6)
+        summed = (selector @ reduction.reshape(-1, 36)).reshape(P + 1, P + 1, 6, 6)
+        blocks += summed
+        if b != a:  # slot pair (b, a) is the transpose (V_inv is symmetric)
+            blocks += summed.transpose(1, 0, 3, 2)
     g_shift = _sum_by_index(pose_of.reshape(-1), np.einsum("xaij,xj->xai", Y, ne.g_x)
                             .reshape(-1, 6), P + 1)
 

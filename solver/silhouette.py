@@ -178,7 +178,6 @@ class ContourGenerator:
         edge_index, place = _runs(counts)
         # Sample at the centres of equal sub-segments, so shared end-points are not doubled.
         s = (place + 0.5) / counts[edge_index]
-        points = a[edge_index] + s[:, None] * (b[edge_index] - a[edge_index])
         uv = uv_a[edge_index] + s[:, None] * (uv_b[edge_index] - uv_a[edge_index])
 
         keep = camera.in_field(uv, fov_margin_px)
@@ -188,4 +187,6 @@ class ContourGenerator:
             pix = np.clip(np.round(uv / _MASK_DOWNSCALE).astype(int), 0,
                           np.array(interior.shape[::-1]) - 1)
             keep &= interior[pix[:, 1], pix[:, 0]] == 0
-        return points[keep]
+        # Most samples fall on interior folds: only the kept ones are carried to the model.
+        edge_index, s = edge_index[keep], s[keep]
+        return a[edge_index] + s[:, None] * (b[edge_index] - a[edge_index])
