@@ -121,6 +121,11 @@ class SolverConfig:
     # small). Pin contours extracted from radiographs can miss 20 px of a pin's end, and a
     # wrong pose seen in the study left 130-250 px; 6 px also refused slightly-off fits.
     max_pin_outline_p90_px: float = 40.0
+    # A pin's edge points this far (RMS) off its surface: a machined part, seen consistently
+    # in every view, lies within ~0.1 mm of its points; its contours disagreeing about where
+    # it is by more means a view's pose is wrong (a wrong basin seen left 1.2 mm, correct
+    # solves at most 0.41 mm, 0.23 mm with 0.5 mm of simulated segmentation error).
+    max_pin_surface_rms_mm: float = 0.8
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
@@ -341,7 +346,8 @@ class JointProblem:
                                           self.pixels[k, label], ids, c.sigma_px, c.w_rp))
             sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
             terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, sigma_mm,
-                                            directions, points[ids], c.sigma_depth_mm, c.w_bp))
+                                            directions, points[ids], c.sigma_depth_mm, c.w_bp,
+                                            view=k, body=self.body_index(label)))
         return terms
 
 
@@ -503,17 +509,28 @@ def _residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], in
     return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
 
 
-def _contour_misfit(problem: JointProblem, state: State, rms: dict[str, float]) -> str | None:
+def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
+                    rms: dict[str, float]) -> str | None:
     """Why the contours do not fit the posed models, or None.
 
-    Two checks: the re-projection RMS of the edge points (methods that have them), and, for
-    every model in every view, the median distance between its silhouette traced at the
-    final poses and the observed contour. A solve caught in a wrong basin can seat its edge
-    points well (small re-projection RMS) while a model's outline lies off its contour."""
+    Three checks: the re-projection RMS of the edge points (methods that have them), how far
+    each pin's edge points lie off its surface (ditto), and, for every model in every view,
+    the median distance between its silhouette traced at the final poses and the observed
+    contour. A solve caught in a wrong basin can seat its edge points well (small
+    re-projection RMS) while a model's outline lies off its contour, or fit each view's pin
+    contours by a pin pose that none of them quite supports."""
     c = problem.config
     if "E_rp" in rms and rms["E_rp"] * c.sigma_px > c.max_residual_rms_px:
         return (f"contours do not fit the models (re-projection RMS "
                 f"{rms['E_rp'] * c.sigma_px:.1f} px > {c.max_residual_rms_px:.1f} px)")
+    for term in terms:
+        if isinstance(term, BackProjectionTerm) and term.body is not None:
+            off_mm = term.surface_rms_mm(state)
+            if off_mm > c.max_pin_surface_rms_mm:
+                label = PIN_LABELS[term.body - problem.n_views]
+                return (f"the {label} edge points of view {problem.views[term.view].view_id} "
+                        f"lie off the pin ({off_mm:.2f} mm RMS > {c.max_pin_surface_rms_mm} mm): "
+                        f"the views disagree about where it is")
     return _outline_misfit(problem, state, LABELS, c.max_silhouette_median_px)
 
 
@@ -612,7 +629,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     if not fine.converged:
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
                         rms, start, went_astray=True)
-    misfit = _contour_misfit(problem, state, rms)
+    misfit = _contour_misfit(problem, state, terms, rms)
     if misfit is not None:
         return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])

@@ -122,6 +122,15 @@ class BackProjectionTerm:
     sigma_depth_mm: float
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("huber", 2.0)
+    # Where the points were observed (view, body index as in ReprojectionTerm), for reports;
+    # the residuals concern the points alone.
+    view: int | None = None
+    body: int | None = None
+
+    def surface_rms_mm(self, state: State) -> float:
+        """RMS distance of the points to the model's surface, mm."""
+        d, _ = self.sdf.query(state.points[self.point_ids], gradient=False)
+        return float(np.sqrt(np.mean(d**2))) if len(d) else 0.0
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         X = state.points[self.point_ids]
