@@ -95,10 +95,11 @@ class DistanceMap:
         grad[:, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
         grad[:, 1] = bottom - top
         outside = local - np.column_stack([u, v])
-        far = np.any(outside != 0, axis=1)
+        clamped = outside != 0
+        far = np.any(clamped, axis=1)
         if np.any(far):
             dist_out = row_norms(outside)
-            grad[outside != 0] = 0.0
+            grad[clamped] = 0.0
             value = value + dist_out
             grad[far] += outside[far] / dist_out[far, None]
         return value, grad

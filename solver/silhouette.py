@@ -117,10 +117,10 @@ class ContourGenerator:
         fraction = (row + upper - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
         x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
         column = np.clip(np.ceil(x), left, right).astype(np.int64) - left
-        box_w = right - left
+        box_h, box_w = lower - upper, right - left
         crossings = np.bincount(row * (box_w + 1) + column,
                                 weights=np.where(downwards, 1.0, -1.0)[edge],
-                                minlength=(lower - upper) * (box_w + 1)).reshape(lower - upper, box_w + 1)
+                                minlength=box_h * (box_w + 1)).reshape(box_h, box_w + 1)
         mask = np.zeros((height, width), np.uint8)
         mask[upper:lower, left:right] = np.abs(np.cumsum(crossings, axis=1)[:, :box_w]) > 0.5
         # Pixels the outline passes through belong to the footprint too, as when faces are
