@@ -30,7 +30,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -88,6 +88,18 @@ class SolverConfig:
     # bone's 0.5 mm is the CT segmentation and its decimated copy, no tolerance of a pin's).
     pin_sigma_mm: float = 0.1
     sigma_depth_mm: float = 0.5  # ... and of its depth along the ray from where it grazes
+    # A bone contour pixel whose ray passes further than this from the bone at the poses
+    # where the edge points are seated is not the bone's edge (a soft-tissue border, the gap
+    # between tibia and fibula, a speck): it gets no edge point. Simulated contours with
+    # 2 px of noise seat within 1.4 mm at the coarse poses; the stray points of bone
+    # contours extracted from radiographs (1-7% of them) lie up to tens of millimetres off,
+    # and under E_bp's Huber loss their constant pull tilted the views (service path: STR
+    # +0.34 deg, +0.22 deg without them). Pin contours are fitted bars, without strays: a
+    # pin point off its pin is a wrong pose, and stays for the gates to see.
+    max_ray_miss_mm: float = 3.0
+    # ... but a bone contour with more than this share of such pixels at the final poses is
+    # not the bone's outline (or the poses are wrong): the solve is refused.
+    max_stray_fraction: float = 0.2
     w_rp: float = 1.0
     w_bp: float = 1.0
     w_mp: float = 0.1
@@ -243,6 +255,15 @@ def _view_separation_deg(views: list[Pose]) -> float:
     return float(np.degrees(np.max(np.arccos(cos))))
 
 
+class EdgeGroup(NamedTuple):
+    """The edge points of one model in one view: their ids among the state's points, the
+    contour pixels they were seated from and their rays' directions (model frame)."""
+
+    ids: np.ndarray
+    pixels: np.ndarray
+    directions: np.ndarray
+
+
 class JointProblem:
     """Variables, terms and gauge of one solve, built from a plan and the views."""
 
@@ -260,6 +281,10 @@ class JointProblem:
 
     def body_index(self, label: str) -> int | None:
         return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
+
+    def label(self, body: int | None) -> str:
+        """The label of the body at pose index ``body`` (the inverse of :meth:`body_index`)."""
+        return "bone" if body is None else PIN_LABELS[body - self.n_views]
 
     def model(self, label: str) -> RigidModel:
         return self.bone if label == "bone" else self.pin
@@ -288,22 +313,30 @@ class JointProblem:
             pins.append(triangulate_pin(sightings, current, self.plan.pin_length()) or current)
         return tuple(pins)
 
-    def seated_points(self, poses: tuple[Pose, ...],
-                      labels: tuple[str, ...] = LABELS) -> tuple[np.ndarray, dict]:
-        """Edge points of ``labels`` seated on their rays for ``poses``, with the id range
-        and the model-frame ray directions of each group."""
-        chunks, ranges, start = [], {}, 0
+    def seated_points(self, poses: tuple[Pose, ...], labels: tuple[str, ...] = LABELS
+                      ) -> tuple[np.ndarray, dict[tuple[int, str], EdgeGroup]]:
+        """Edge points of ``labels`` seated on their rays for ``poses``, and per view and
+        label the group of points kept: for the bone, those whose rays pass within
+        ``SolverConfig.max_ray_miss_mm`` of it."""
+        chunks, groups, start = [], {}, 0
         for (k, label), px in self.pixels.items():
             if len(px) == 0 or label not in labels:
                 continue
             step = 1.0 if label == "bone" else 0.25
+            model = self.model(label)
             T_cam_body, camera = self.T_cam_body(poses, k, label), self.views[k].camera
-            chunks.append(seat_on_rays(self.model(label), T_cam_body, camera, px, step))
-            ranges[k, label] = (np.arange(start, start + len(px)),
-                                T_cam_body.inverse().rotate(camera.rays(px)))
-            start += len(px)
+            seated = seat_on_rays(model, T_cam_body, camera, px, step)
+            kept = np.ones(len(px), bool)
+            if label == "bone":
+                kept = np.abs(model.sdf.query(seated, gradient=False)[0]) <= self.config.max_ray_miss_mm
+            if not kept.any():
+                continue
+            chunks.append(seated[kept])
+            groups[k, label] = EdgeGroup(np.arange(start, start + kept.sum()), px[kept],
+                                         T_cam_body.inverse().rotate(camera.rays(px[kept])))
+            start += int(kept.sum())
         points = np.vstack(chunks) if chunks else np.zeros((0, 3))
-        return points, ranges
+        return points, groups
 
     def silhouette_terms(self, labels: tuple[str, ...], weight: float, loss: RobustLoss,
                          freeze_outline: bool = False, light: bool = False) -> list[Term]:
@@ -337,17 +370,19 @@ class JointProblem:
         return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, sigma_rad, sigma_mm)
                 for k, T in enumerate(initial.T_cam_tibia) if k > 0]
 
-    def edge_terms(self, points: np.ndarray, ranges: dict) -> list[Term]:
+    def edge_terms(self, points: np.ndarray, groups: dict[tuple[int, str], EdgeGroup]
+                   ) -> list[Term]:
         """E_rp and E_bp of the edge points ``points`` seated by :meth:`seated_points`."""
         c = self.config
         terms: list[Term] = []
-        for (k, label), (ids, directions) in ranges.items():
+        for (k, label), group in groups.items():
             terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
-                                          self.pixels[k, label], ids, c.sigma_px, c.w_rp))
+                                          group.pixels, group.ids, c.sigma_px, c.w_rp))
             sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
-            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, ids, sigma_mm,
-                                            directions, points[ids], c.sigma_depth_mm, c.w_bp,
-                                            view=k, body=self.body_index(label)))
+            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, group.ids, sigma_mm,
+                                            group.directions, points[group.ids],
+                                            c.sigma_depth_mm, c.w_bp, view=k,
+                                            body=self.body_index(label)))
         return terms
 
 
@@ -448,8 +483,8 @@ class _Schedule:
         first = LMOptions(max_iterations=c.joint_seated_iterations,
                           relative_tolerance=c.fine.relative_tolerance)
         for options, name in ((first, "joint"), (c.fine, "joint reseated")):
-            points, ranges = p.seated_points(state.poses)
-            terms = p.edge_terms(points, ranges) + p.silhouette_terms(
+            points, groups = p.seated_points(state.poses)
+            terms = p.edge_terms(points, groups) + p.silhouette_terms(
                 LABELS, c.w_mp, RobustLoss("cauchy", 3.0), freeze_outline=True) + self.odometry
             state, report = self.lm(terms, State(state.poses, points), p.fixed_dofs(), options,
                                     name, until_settled=True)
@@ -460,12 +495,12 @@ class _Schedule:
         points, then the pins' points with the views held) or joint (everything at once)."""
         p, c = self.problem, self.problem.config
         if split:
-            points, ranges = p.seated_points(state.poses, labels=("bone",))
-            state, _ = self.lm(p.edge_terms(points, ranges), State(state.poses, points),
+            points, groups = p.seated_points(state.poses, labels=("bone",))
+            state, _ = self.lm(p.edge_terms(points, groups), State(state.poses, points),
                                p.fixed_dofs(pins=True), c.fine, "back-projection views")
         state = self.with_triangulated_pins(state)
-        points, ranges = p.seated_points(state.poses)
-        terms = p.edge_terms(points, ranges)
+        points, groups = p.seated_points(state.poses)
+        terms = p.edge_terms(points, groups)
         held = p.fixed_dofs(views=True) if split else p.fixed_dofs()
         name = "back-projection pins" if split else "back-projection joint"
         state, report = self.lm(terms, State(state.poses, points), held, c.fine, name)
@@ -513,8 +548,9 @@ def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
                     rms: dict[str, float]) -> str | None:
     """Why the contours do not fit the posed models, or None.
 
-    Three checks: the re-projection RMS of the edge points (methods that have them), how far
-    each pin's edge points lie off its surface (ditto), and, for every model in every view,
+    Four checks: the re-projection RMS of the edge points (methods that have them), the share
+    of each bone contour's pixels whose rays miss the bone (ditto), how far each pin's edge points
+    lie off its surface (ditto), and, for every model in every view,
     the median distance between its silhouette traced at the final poses and the observed
     contour. A solve caught in a wrong basin can seat its edge points well (small
     re-projection RMS) while a model's outline lies off its contour, or fit each view's pin
@@ -523,11 +559,21 @@ def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
     if "E_rp" in rms and rms["E_rp"] * c.sigma_px > c.max_residual_rms_px:
         return (f"contours do not fit the models (re-projection RMS "
                 f"{rms['E_rp'] * c.sigma_px:.1f} px > {c.max_residual_rms_px:.1f} px)")
+    seated = {(t.view, problem.label(t.body)): len(t.pixels)
+              for t in terms if isinstance(t, ReprojectionTerm)}
+    for (k, label), pixels in problem.pixels.items():
+        if not seated or label != "bone" or len(pixels) == 0:
+            continue
+        stray = 1.0 - seated.get((k, label), 0) / len(pixels)
+        if stray > c.max_stray_fraction:
+            return (f"the {label} contour of view {problem.views[k].view_id} does not fit its "
+                    f"model ({100 * stray:.0f}% of its points lie more than "
+                    f"{c.max_ray_miss_mm:g} mm off it > {100 * c.max_stray_fraction:.0f}%)")
     for term in terms:
         if isinstance(term, BackProjectionTerm) and term.body is not None:
             off_mm = term.surface_rms_mm(state)
             if off_mm > c.max_pin_surface_rms_mm:
-                label = PIN_LABELS[term.body - problem.n_views]
+                label = problem.label(term.body)
                 return (f"the {label} edge points of view {problem.views[term.view].view_id} "
                         f"lie off the pin ({off_mm:.2f} mm RMS > {c.max_pin_surface_rms_mm} mm): "
                         f"the views disagree about where it is")
@@ -543,7 +589,7 @@ def _outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...]
     pin_limit_px = problem.config.max_pin_outline_p90_px
     for term in problem.silhouette_terms(labels, 1.0, RobustLoss("l2")):
         outline, contour = term.distances_px(state)
-        label = "bone" if term.body is None else PIN_LABELS[term.body - problem.n_views]
+        label = problem.label(term.body)
         where = f"the {label} outline in view {problem.views[term.view].view_id}"
         median_px = float(np.median(np.concatenate([outline, contour])))
         if median_px > limit_px:
