@@ -79,6 +79,7 @@ def result_document(case_id: str, outcome: SolveOutcome, plan: Plan,
             "residual_rms_sigma": outcome.residual_rms,
             "term_costs": outcome.term_costs,
             "contour_points": outcome.point_counts,
+            "edge_points": outcome.edge_point_counts,
         },
         "inputs": {
             "views": [v.view_id for v in views],

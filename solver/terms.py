@@ -127,10 +127,11 @@ class BackProjectionTerm:
     view: int | None = None
     body: int | None = None
 
-    def surface_rms_mm(self, state: State) -> float:
-        """RMS distance of the points to the model's surface, mm."""
-        d, _ = self.sdf.query(state.points[self.point_ids], gradient=False)
-        return float(np.sqrt(np.mean(d**2))) if len(d) else 0.0
+    def graze_offset_rms_mm(self, state: State) -> float:
+        """RMS distance (mm) of the points from where their rays graze the model: off its
+        surface, and moved along their rays from the grazing depth (both residuals, in mm)."""
+        r = self.linearize(state, jacobians=False).residuals * [self.sigma_mm, self.sigma_depth_mm]
+        return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else 0.0
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         X = state.points[self.point_ids]
