@@ -36,9 +36,13 @@ SUCCESS_DEG = 1.0
 _worker_plan: Plan | None = None
 
 
-def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None) -> None:
+def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None,
+                 segmentation_mm: float) -> None:
+    """The study's plan, which states the segmentation error the study simulates (none in
+    the paper's protocol, where the mesh is the bone), as a plan from CT would."""
     global _worker_plan
     _worker_plan = Plan.phantom() if tibia is None else Plan.from_meshes(tibia, fibula, landmarks)
+    _worker_plan.segmentation_sd_mm = segmentation_mm
     _worker_plan.bone_model()
     _worker_plan.pin_model()
 
@@ -141,7 +145,8 @@ def run_accuracy(args: argparse.Namespace) -> int:
     jobs = [(method, level, args.seed + 1000 * level + run, args.noise_px, args.segmentation_mm)
             for method in args.methods for level in args.levels for run in range(args.runs)]
     with ProcessPoolExecutor(args.workers, initializer=_init_worker,
-                             initargs=(args.tibia, args.fibula, args.landmarks)) as pool:
+                             initargs=(args.tibia, args.fibula, args.landmarks,
+                                       args.segmentation_mm)) as pool:
         rows = list(pool.map(_run_one, jobs))
     results = [_summary(method, level, [r for r in rows if r["level"] == level and r["method"] == method])
                for method in args.methods for level in args.levels]

@@ -37,7 +37,7 @@ import trimesh
 from solver.anatomy import Landmarks
 from solver.meshes import load_mesh
 from solver.pin import PinSpec, build_pin
-from solver.plan import BONE_EXTENT_MM, Plan, Target
+from solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target
 
 __all__ = ["PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
            "LATERALITY_TO_SIDE"]
@@ -210,6 +210,13 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def _segmentation_mm(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 5.0:
+        raise argparse.ArgumentTypeError(f"segmentation error {value} mm is outside [0, 5] mm")
+    return value
+
+
 def cmd_plan_add(args: argparse.Namespace) -> int:
     tibia = load_mesh(args.tibia, BONE_EXTENT_MM)
     fibula = None if args.fibula is None else load_mesh(args.fibula, BONE_EXTENT_MM)
@@ -227,7 +234,8 @@ def cmd_plan_add(args: argparse.Namespace) -> int:
               "`slamtka plan show`")
     target = Target(args.target_ctr, args.target_str, args.tolerance)
     spec = PinSpec()
-    plan = Plan(tibia, fibula, landmarks, build_pin(spec), spec, target, args.patient_id)
+    plan = Plan(tibia, fibula, landmarks, build_pin(spec), spec, target, args.patient_id,
+                segmentation_sd_mm=args.segmentation_mm)
     provenance = {
         "imported": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "landmarks": how,
@@ -262,7 +270,8 @@ def cmd_plan_show(args: argparse.Namespace) -> int:
         f"patient {plan.patient_id}, {plan.side} side   ({plan.folder})",
         f"  tibia: {len(plan.tibia.faces)} triangles, extent "
         f"{np.round(plan.tibia.extents, 1).tolist()} mm"
-        + ("" if plan.fibula is None else f"; fibula: {len(plan.fibula.faces)} triangles"),
+        + ("" if plan.fibula is None else f"; fibula: {len(plan.fibula.faces)} triangles")
+        + f"; segmentation error {plan.segmentation_sd_mm:.2f} mm (SD)",
         f"  landmarks ({prov.get('landmarks', 'given')}): knee centre "
         f"{np.round(lm.knee_centre, 1).tolist()}, ankle centre {np.round(lm.ankle_centre, 1).tolist()}, "
         f"mechanical axis {np.linalg.norm(lm.knee_centre - lm.ankle_centre):.0f} mm",
@@ -296,6 +305,9 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target-ctr", type=float, default=Target.ctr_deg, help="planned CTR, deg")
     p.add_argument("--target-str", type=float, default=Target.str_deg, help="planned STR, deg")
     p.add_argument("--tolerance", type=float, default=Target.tolerance_deg, help="deg")
+    p.add_argument("--segmentation-mm", type=_segmentation_mm, default=DEFAULT_SEGMENTATION_SD_MM,
+                   help="SD of the bone surface's segmentation error, mm (its share of each "
+                        "result's uncertainty)")
     p.add_argument("--replace", action="store_true", help="replace an existing plan")
     p.set_defaults(func=cmd_plan_add)
 

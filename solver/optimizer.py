@@ -22,6 +22,7 @@ from scipy import sparse
 from .geometry import Pose, cross
 
 __all__ = [
+    "SharedError",
     "State",
     "Linearization",
     "RobustLoss",
@@ -354,20 +355,59 @@ def levenberg_marquardt(
                               time.perf_counter() - start, history)
 
 
+@dataclass
+class SharedError:
+    """Errors shared between residuals, not estimated but considered in the covariance
+    ("consider" parameters, as in navigation filters): the first residual component of the
+    r-th point of ``terms`` (point terms, their rows in order) is off by the whitened error
+    ``e[group[r]]``, and ``e`` has covariance ``covariance`` (G, G)."""
+
+    terms: list[Term]
+    group: np.ndarray  # (R,) in [0, G)
+    covariance: np.ndarray  # (G, G)
+
+
 def pose_covariance(
-    terms: list[Term], state: State, fixed_dofs: np.ndarray | None = None
-) -> np.ndarray:
-    """Marginal covariance (6P, 6P) of the poses at ``state`` (points marginalised).
+    terms: list[Term], state: State, fixed_dofs: np.ndarray | None = None,
+    shared: SharedError | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Marginal covariance (6P, 6P) of the poses at ``state`` (points marginalised) from
+    independent residual noise, and the part ``shared`` adds (zero without it).
 
     The Schur complement of the Gauss-Newton information is exactly the marginal
     information of the poses; fixed (gauge) directions get zero variance. Residuals are
-    whitened, so this is in the units of the poses' increments.
+    whitened, so this is in the units of the poses' increments. A shared error ``e`` moves
+    the points' gradient by ``b e`` and, through the points' coupling, the poses by
+    ``A e = S^-1 (sum over coupled poses of H_px V^-1 b) e``; its covariance is
+    ``A C A^T``.
     """
     P, X = len(state.poses), len(state.points)
     lins, _ = _evaluate(terms, state, jacobians=True)
     ne = build_normal_equations(terms, lins, P, X)
-    S = _reduced_system(ne, P, 0.0)[0]
+    S, _, V_inv = _reduced_system(ne, P, 0.0)
     free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
     cov = np.zeros((6 * P, 6 * P))
     cov[np.ix_(free, free)] = np.linalg.pinv(S[np.ix_(free, free)], hermitian=True)
-    return cov
+    if shared is None:
+        return cov, np.zeros_like(cov)
+    # b: each shared row's gradient direction on its point, robust weight included.
+    by_term = {id(term): (term, lin) for term, lin in zip(terms, lins)}
+    ids, b = [], []
+    for term in shared.terms:
+        term, lin = by_term[id(term)]
+        x_idx, Jx = lin.point_jacobian
+        w = term.weight * term.loss.weight(np.sum(lin.residuals**2, axis=1))
+        ids.append(x_idx)
+        b.append(w[:, None] * Jx[:, 0, :])
+    ids, b = np.concatenate(ids), np.concatenate(b)
+    W, pose_of, _ = ne.coupling
+    moved = np.einsum("rkij,rj->rki", W[ids] @ V_inv[ids][:, None], b)  # (R, k, 6)
+    # Each shared error's pull on every pose: the rows' pulls summed by error and pose.
+    n_errors = len(shared.covariance)
+    pull = np.zeros((n_errors * (P + 1), 6))
+    for slot in range(moved.shape[1]):
+        pull += _sum_by_index(shared.group * (P + 1) + pose_of[ids, slot], moved[:, slot],
+                              n_errors * (P + 1))
+    M = pull.reshape(n_errors, P + 1, 6)[:, :P].reshape(n_errors, 6 * P).T
+    A = cov @ M
+    return cov, A @ shared.covariance @ A.T

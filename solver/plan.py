@@ -7,7 +7,8 @@ never during surgery.
 
 Plan folder::
 
-    plan.json        format, patient, side, mesh files with units, landmarks, pin, target
+    plan.json        format, patient, side, mesh files with units, landmarks, pin, target,
+                     the bone's segmentation error (SD, mm)
     tibia.stl ...    meshes named in plan.json
     cache/           signed distance fields keyed by mesh hash (safe to delete)
 """
@@ -37,6 +38,8 @@ PIN_EXTENT_MM = (20.0, 300.0)
 # than a pixel, and the cost per iteration stays low.
 _SILHOUETTE_MAX_FACES = 6000
 _SEARCH_MAX_FACES = 1500
+# Segmentation error of a bone surface from CT (SD, mm), when the plan does not state its own.
+DEFAULT_SEGMENTATION_SD_MM = 0.5
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,11 @@ class Plan:
     target: Target = field(default_factory=Target)
     patient_id: str = "ANON"
     folder: Path | None = None
+    # SD of the bone surface's segmentation error (mm): smooth over the bone, it biases the
+    # views alike, so the solver adds it to the uncertainty as an error shared by nearby
+    # edge points. A mesh from CT carries about DEFAULT_SEGMENTATION_SD_MM; the built-in
+    # phantom is exact.
+    segmentation_sd_mm: float = DEFAULT_SEGMENTATION_SD_MM
     _models: dict[str, RigidModel] = field(default_factory=dict, repr=False)
 
     @property
@@ -115,16 +123,19 @@ class Plan:
         bone = build_phantom(side)
         landmarks = Landmarks(bone.knee_centre, bone.ankle_centre, bone.anterior, side)
         spec = PinSpec()
-        return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM")
+        return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM",
+                    segmentation_sd_mm=0.0)
 
     @staticmethod
     def from_meshes(tibia: Path, fibula: Path | None, landmarks: Path,
-                    target: Target = Target()) -> Plan:
+                    target: Target = Target(),
+                    segmentation_sd_mm: float = DEFAULT_SEGMENTATION_SD_MM) -> Plan:
         """A plan from mesh files (units detected) and a landmarks JSON, default pin."""
         spec = PinSpec()
         return Plan(load_mesh(tibia, BONE_EXTENT_MM),
                     None if fibula is None else load_mesh(fibula, BONE_EXTENT_MM),
-                    Landmarks.load(landmarks), build_pin(spec), spec, target)
+                    Landmarks.load(landmarks), build_pin(spec), spec, target,
+                    segmentation_sd_mm=segmentation_sd_mm)
 
     def bone_meshes(self) -> list[trimesh.Trimesh]:
         return [self.tibia] if self.fibula is None else [self.tibia, self.fibula]
@@ -156,6 +167,7 @@ class Plan:
             "tibia": {"file": "tibia.stl", "units": "mm"},
             "fibula": None,
             "landmarks": self.landmarks.to_json(),
+            "segmentation_sd_mm": self.segmentation_sd_mm,
             "target": {
                 "ctr_deg": self.target.ctr_deg,
                 "str_deg": self.target.str_deg,
@@ -204,9 +216,14 @@ class Plan:
                 pin_spec = PinSpec(**pin_doc.get("parametric", {}))
                 pin_mesh = build_pin(pin_spec)
             target = Target(**doc.get("target", {}))
+            segmentation_sd_mm = doc.get("segmentation_sd_mm", DEFAULT_SEGMENTATION_SD_MM)
+            if (isinstance(segmentation_sd_mm, bool) or not isinstance(segmentation_sd_mm, (int, float))
+                    or not 0.0 <= segmentation_sd_mm <= 5.0):
+                raise ValueError(f"{path}: segmentation_sd_mm must be a number of mm in [0, 5], "
+                                 f"got {segmentation_sd_mm!r}")
         except KeyError as missing:
             raise ValueError(f"{path}: missing field {missing}") from None
         except TypeError as exc:
             raise ValueError(f"{path}: malformed field ({exc})") from None
         return Plan(tibia, fibula, landmarks, pin_mesh, pin_spec, target,
-                    str(doc.get("patient_id", "ANON")), folder)
+                    str(doc.get("patient_id", "ANON")), folder, segmentation_sd_mm)

@@ -43,6 +43,7 @@ from .optimizer import (
     IterationInfo,
     LMOptions,
     RobustLoss,
+    SharedError,
     SolveReport,
     State,
     Term,
@@ -91,6 +92,10 @@ class SolverConfig:
     sigma_mm: float = 0.3
     # ... and to a pin's: a machined part, its mesh and distance field true to ~0.05 mm.
     pin_sigma_mm: float = 0.1
+    # Distance over which the plan's bone segmentation error (``Plan.segmentation_sd_mm``)
+    # stays alike: CT segmentation errors follow partial-volume blur, thresholds and
+    # smoothing over a few voxels to centimetres.
+    segmentation_correlation_mm: float = 10.0
     sigma_depth_mm: float = 0.5  # ... and of its depth along the ray from where it grazes
     # A bone contour pixel whose ray passes further than this from the bone at the poses
     # where the edge points are seated is not the bone's edge (a soft-tissue border, the gap
@@ -554,6 +559,34 @@ def _residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], in
     return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
 
 
+def _segmentation_error(problem: JointProblem, state: State, terms: list[Term]
+                        ) -> SharedError | None:
+    """The plan's bone segmentation error as an error shared by the bone's edge points
+    (none for an exact mesh, or for methods without edge points).
+
+    A segmentation error moves the surface smoothly: points on the same stretch of bone are
+    off alike, which no independent per-point sigma can say (it averages away over a
+    thousand points). Its covariance between two points is ``sd^2 exp(-d^2 / 2 l^2)`` for
+    their distance ``d`` (``l``, ``SolverConfig.segmentation_correlation_mm``), whitened by
+    the bone's per-point ``sigma_mm``."""
+    sd_mm = problem.plan.segmentation_sd_mm
+    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
+    if sd_mm <= 0.0 or not bone:
+        return None
+    c = problem.config
+    points = state.points[np.concatenate([t.point_ids for t in bone])]
+    # Points a fraction of the correlation length apart share one error (the cells'
+    # centroids carry it), so that its cost grows with the bone's size, not its points'.
+    cells = np.floor(points / (c.segmentation_correlation_mm / 3.0)).astype(np.int64)
+    _, group = np.unique(cells, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    counts = np.bincount(group)
+    centroids = np.stack([np.bincount(group, points[:, i]) for i in range(3)], axis=1) / counts[:, None]
+    squared = np.sum((centroids[:, None, :] - centroids[None, :, :]) ** 2, axis=2)
+    correlation = np.exp(-squared / (2.0 * c.segmentation_correlation_mm**2))
+    return SharedError(bone, group, (sd_mm / c.sigma_mm) ** 2 * correlation)
+
+
 def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
                     rms: dict[str, float]) -> str | None:
     """Why the contours do not fit the posed models, or None.
@@ -712,12 +745,15 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     # E_mp charges the same contour pixels again that the edge points (E_rp, E_bp) explain:
     # where those exist, its information would be counted twice, and the spread understated.
     with_edges = any(term.name == "E_rp" for term in terms)
-    cov = pose_covariance([t for t in terms if not (with_edges and t.name == "E_mp")], state, fixed)
+    cov_terms = [t for t in terms if not (with_edges and t.name == "E_mp")]
+    cov, cov_segmentation = pose_covariance(cov_terms, state, fixed,
+                                            _segmentation_error(problem, state, cov_terms))
     pin_slice = slice(6 * n, 6 * (n + 2))
     dof = n_residuals - len(state.points) * 3 - fixed.size
     variance_factor = max(1.0, fine.cost / max(dof, 1))
-    angle_cov = angle_covariance(pins, cov[pin_slice, pin_slice] * variance_factor,
-                                 plan.pin_length(), plan.landmarks)
+    angle_cov = angle_covariance(
+        pins, (cov * variance_factor + cov_segmentation)[pin_slice, pin_slice],
+        plan.pin_length(), plan.landmarks)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
     outcome = SolveOutcome("measured", "", state, final_views, pins, plane, angle_cov, rms,
                            fine.term_costs, report.iterations, time.perf_counter() - start,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from service.cli import main
 from service.plans import PlanStore, estimate_landmarks
 from solver.phantom import build_phantom
+from solver.plan import Plan
 
 SMITH = Path(__file__).resolve().parents[2] / "shared" / "data" / "knee-smith2019"
 SMITH_LANDMARKS = Path(__file__).resolve().parent / "data" / "knee-smith2019-landmarks.json"
@@ -44,7 +46,7 @@ def test_plan_add_estimates_landmarks_then_list_show_and_find(phantom_meshes, tm
     code = main(["plan", "add", "--plans", str(plans), "--patient-id", "PAT/001 x",
                  "--side", "left", "--tibia", str(folder / "tibia.stl"), "--fibula",
                  str(folder / "fibula.stl"), "--target-ctr", "1", "--target-str", "5",
-                 "--tolerance", "2.5"])
+                 "--tolerance", "2.5", "--segmentation-mm", "0.4"])
     out = capsys.readouterr().out
     assert code == 0 and "estimated from the full-length tibia" in out
     (saved,) = [p for p in plans.iterdir() if not p.name.startswith(".")]
@@ -59,10 +61,19 @@ def test_plan_add_estimates_landmarks_then_list_show_and_find(phantom_meshes, tm
     assert main(["plan", "show", "--plans", str(plans), "--patient-id", "PAT/001 x"]) == 0
     shown = capsys.readouterr().out
     assert "CTR +1.0 deg, STR +5.0 deg, tolerance +-2.5 deg" in shown and "landmarks (estimated)" in shown
+    assert "segmentation error 0.40 mm (SD)" in shown
 
     store = PlanStore(plans)
     plan = store.find("PAT/001 x", "L")
     assert plan.side == "left" and plan.target.str_deg == 5.0 and plan.fibula is not None
+    assert plan.segmentation_sd_mm == 0.4
+    # A plan file stating an impossible segmentation error is refused by name.
+    doc = json.loads((saved / "plan.json").read_text())
+    broken = tmp_path / "broken"
+    shutil.copytree(saved, broken)
+    (broken / "plan.json").write_text(json.dumps({**doc, "segmentation_sd_mm": "big"}))
+    with pytest.raises(ValueError, match="segmentation_sd_mm must be a number of mm"):
+        Plan.load(broken)
     assert store.find("PAT/001 x", None) is plan  # the only plan; cached while unchanged
     with pytest.raises(ValueError, match="no plan for patient 'PAT/001 x', right side"):
         store.find("PAT/001 x", "R")

@@ -58,6 +58,70 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
     assert checked == {"E_rp", "E_bp", "E_mp", "E_odo"}
 
 
+class _Dilated:
+    """A signed distance field whose surface lies ``offset_mm`` further out."""
+
+    def __init__(self, sdf, offset_mm: float):
+        self.sdf, self.offset_mm = sdf, offset_mm
+
+    def query(self, points, gradient=True):
+        d, grad = self.sdf.query(points, gradient=gradient)
+        return d - self.offset_mm, grad
+
+
+def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_plan):
+    """The considered segmentation error's covariance is that of the linear response of the
+    estimate: dilating the bone's surface by 0.02 mm changes the Gauss-Newton step of every
+    pose by what ``pose_covariance`` predicts for that one shared error (to 1%)."""
+    from dataclasses import replace
+
+    from solver.optimizer import RobustLoss, SharedError, _evaluate, _solve_step, pose_covariance
+    from solver.terms import BackProjectionTerm
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=4, init_rot_sd_rad=0.0, init_trans_sd_mm=0.0))
+    problem = JointProblem(phantom_plan, case.views, SolverConfig())
+    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    points, groups = problem.seated_points(truth)
+    state = State(truth, points)
+    # Least squares: a robust loss's weights would move with the residuals, not the response.
+    terms = [replace(t, loss=RobustLoss("l2"))
+             for t in problem.edge_terms(points, groups) + problem.odometry_terms(case.initial)]
+    fixed = problem.fixed_dofs()
+    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
+    offset_mm = 0.02
+    dilated = [replace(t, sdf=_Dilated(t.sdf, offset_mm)) if any(t is b for b in bone) else t
+               for t in terms]
+
+    def step(terms):
+        lins, _ = _evaluate(terms, state, jacobians=True)
+        ne = optimizer.build_normal_equations(terms, lins, len(state.poses), len(state.points))
+        return _solve_step(ne, len(state.poses), ~fixed, 0.0)[0]
+
+    change = step(dilated) - step(terms)
+    # One shared error of unit variance: the response to it is the covariance's square root.
+    rows = sum(len(t.point_ids) for t in bone)
+    _, response = pose_covariance(terms, state, fixed, SharedError(bone, np.zeros(rows, int),
+                                                                   np.ones((1, 1))))
+    # The whitened error is the surface offset over the bone's sigma; the sign drops out.
+    expected = response * (offset_mm / problem.config.sigma_mm) ** 2
+    observed = np.outer(change, change)
+    assert np.linalg.norm(expected) > 1e-4  # the poses do move (by ~0.1 mm)
+    assert np.linalg.norm(observed - expected) < 0.01 * np.linalg.norm(expected)
+
+
+def test_a_plan_segmentation_error_widens_the_uncertainty_not_the_answer(phantom_plan):
+    """The same solve with the plan stating a 0.5 mm segmentation error: identical angles,
+    a sigma at least twice as wide (a shared error does not average away over the points)."""
+    from dataclasses import replace
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=6))
+    exact = solve_joint(phantom_plan, case.views, case.initial)
+    segmented = solve_joint(replace(phantom_plan, segmentation_sd_mm=0.5), case.views, case.initial)
+    assert exact.status == segmented.status == "measured"
+    assert np.isclose(exact.plane.ctr, segmented.plane.ctr) and np.isclose(exact.plane.str_, segmented.plane.str_)
+    assert np.all(np.diag(segmented.angle_cov) > 4.0 * np.diag(exact.angle_cov))
+
+
 def test_schur_step_equals_the_dense_solution(real_plan):
     _, problem, state, terms = _linearized_problem(real_plan)
     P, X = len(state.poses), len(state.points)
