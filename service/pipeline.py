@@ -348,6 +348,7 @@ class Pipeline:
                             "odometry_sigma": initial.odometry_sigma},
                 "plan": {"patient_id": plan.patient_id, "landmarks": plan.landmarks.to_json(),
                          "target": vars(plan.target),
+                         "segmentation_sd_mm": plan.segmentation_sd_mm,
                          "pin": vars(plan.pin_spec) if plan.pin_spec is not None else None,
                          "bone_mesh_sha256": mesh_digest(plan.bone_meshes()),
                          "pin_mesh_sha256": mesh_digest([plan.pin_mesh])},

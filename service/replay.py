@@ -27,7 +27,7 @@ from solver.geometry import Pose
 from solver.measurement import fit_resection_plane
 from solver.observations import LABELS, ViewObservation
 from solver.pin import PinSpec, build_pin
-from solver.plan import Plan, Target
+from solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
 from solver.sdf import mesh_digest
 from solver.slam import InitialGuess, SolverConfig, solve_joint
 
@@ -124,7 +124,8 @@ def _recorded_plan(rec: Recording) -> tuple[Plan, dict]:
     pin_mesh = build_pin(spec) if spec is not None else rec.meshes["plan/pin"]
     plan = Plan(rec.meshes["plan/tibia"], rec.meshes.get("plan/fibula"),
                 Landmarks.from_json(p["landmarks"]), pin_mesh, spec, Target(**p["target"]),
-                p["patient_id"])
+                p["patient_id"],
+                segmentation_sd_mm=p.get("segmentation_sd_mm", DEFAULT_SEGMENTATION_SD_MM))
     return plan, inputs
 
 
