@@ -84,12 +84,14 @@ class InitialGuess:
 @dataclass(frozen=True)
 class SolverConfig:
     sigma_px: float = 2.0  # expected contour noise, pixels
-    # Expected distance of a true edge point to the bone's surface: what converged solves
-    # leave (0.27 mm RMS over 200 study solves; the rays' sampling of a decimated mesh with
-    # 2 px of contour noise). 0.5 mm overstated the spread the contour noise causes (the
-    # sigma covered 80% of real-tibia errors at 1 sigma); 0.2-0.3 mm measures slightly
-    # better. Smooth CT segmentation error is not independent per point and is not this.
-    sigma_mm: float = 0.3
+    # Expected distance of a true edge point to the bone's surface (the bone's own mesh and
+    # its decimated copy). Converged solves leave 0.27 mm RMS, but 0.3 mm made the reported
+    # sigma too small for the phantom (58-66% of its errors within 1 sigma, 90-95% within 2,
+    # over 1,000 study runs), whose contour noise also biases STR by 0.1-0.2 deg in some
+    # cases (the silhouette's distance to a noisy contour), while the real tibia stayed
+    # over-covered (75-84%). 0.5 mm errs on the side of a wider sigma. Smooth segmentation
+    # error is a separate, shared error (``Plan.segmentation_sd_mm``).
+    sigma_mm: float = 0.5
     # ... and to a pin's: a machined part, its mesh and distance field true to ~0.05 mm.
     pin_sigma_mm: float = 0.1
     # Distance over which the plan's bone segmentation error (``Plan.segmentation_sd_mm``)
