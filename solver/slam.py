@@ -294,7 +294,17 @@ class JointProblem:
 
     def point_counts(self) -> dict[str, int]:
         """Kept contour points per view and label, for the result document."""
-        return {f"{self.views[k].view_id}/{label}": len(px) for (k, label), px in self.pixels.items()}
+        return self.named({key: len(px) for key, px in self.pixels.items()})
+
+    def named(self, counts: dict[tuple[int, str], int]) -> dict[str, int]:
+        """Counts per (view index, label) keyed as the result document names them."""
+        return {f"{self.views[k].view_id}/{label}": n for (k, label), n in counts.items()}
+
+    def edge_point_counts(self, terms: list[Term]) -> dict[tuple[int, str], int]:
+        """Contour points per view and label that kept an edge point in ``terms`` (those of
+        the re-projection terms; empty for methods without edge points)."""
+        return {(t.view, self.label(t.body)): len(t.pixels)
+                for t in terms if isinstance(t, ReprojectionTerm)}
 
     def body_index(self, label: str) -> int | None:
         return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
@@ -604,8 +614,7 @@ def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
     if "E_rp" in rms and rms["E_rp"] * c.sigma_px > c.max_residual_rms_px:
         return (f"contours do not fit the models (re-projection RMS "
                 f"{rms['E_rp'] * c.sigma_px:.1f} px > {c.max_residual_rms_px:.1f} px)")
-    seated = {(t.view, problem.label(t.body)): len(t.pixels)
-              for t in terms if isinstance(t, ReprojectionTerm)}
+    seated = problem.edge_point_counts(terms)
     for (k, label), pixels in problem.pixels.items():
         if not seated or label != "bone" or len(pixels) == 0:
             continue
@@ -717,9 +726,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
                          fine.term_costs, schedule.seconds, fine.history)
     outcome = _judged(problem, state, terms, fine, report, start)
-    outcome.edge_point_counts = {
-        f"{problem.views[t.view].view_id}/{problem.label(t.body)}": len(t.pixels)
-        for t in terms if isinstance(t, ReprojectionTerm)}
+    outcome.edge_point_counts = problem.named(problem.edge_point_counts(terms))
     return outcome
 
 
