@@ -265,6 +265,9 @@ def _reduced_system(
     Damping ``lam * diag`` is applied to the pose and point blocks *before* elimination, so
     the step equals that of the damped full system."""
     P = n_poses
+    H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
+    if len(ne.H_xx) == 0:  # no points to eliminate (the silhouette stages)
+        return H_pp, -ne.g_p, np.zeros((0, 3, 3))
     V = ne.H_xx.copy()
     diag = np.einsum("xii->xi", V)
     reg = _POINT_REGULARISATION * np.maximum(diag.sum(axis=1), 1e-9)
@@ -282,7 +285,6 @@ def _reduced_system(
             blocks += summed.transpose(1, 0, 3, 2)
     g_shift = _sum_rows(by_pose, np.einsum("xaij,xj->xai", Y, ne.g_x).reshape(-1, 6))
 
-    H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
     S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
     rhs = -ne.g_p + g_shift[:P].reshape(-1)
     return S, rhs, V_inv
@@ -291,10 +293,12 @@ def _reduced_system(
 def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float):
     """LM step (pose increments (6P,), point increments (X, 3)) for damping ``lam``."""
     S, rhs, V_inv = _reduced_system(ne, n_poses, lam)
-    W, pose_of, *_ = ne.coupling
     S_free = S[np.ix_(free, free)]
     d_p = np.zeros(6 * n_poses)
     d_p[free] = np.linalg.solve(S_free, rhs[free])
+    if len(V_inv) == 0:
+        return d_p, np.zeros((0, 3))
+    W, pose_of, *_ = ne.coupling
     d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])
     coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])  # sum_a H_xp d_p
     d_x = -np.einsum("xij,xj->xi", V_inv, ne.g_x + coupled)
