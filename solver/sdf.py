@@ -187,11 +187,11 @@ class SignedDistanceField:
             value = value + dist_out
         if not gradient:
             return value, None
-        # d/dy and d/dz, each blended along x from its two y-z edges.
-        edges = np.concatenate([dy, dz[0::2] + (dz[1::2] - dz[0::2]) * fy])
+        # d/dy and d/dz on the cell's two x faces (x = 0, 1), then blended along x.
+        slopes = np.concatenate([dy, dz[0::2] + (dz[1::2] - dz[0::2]) * fy])
         grad = np.empty((3, len(value)))
         grad[0] = dx
-        grad[1:] = edges[0::2] * (1 - fx) + edges[1::2] * fx
+        grad[1:] = slopes[0::2] * (1 - fx) + slopes[1::2] * fx
         grad = grad.T / self.spacing
         if beyond:
             far = dist_out > 0

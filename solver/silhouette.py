@@ -75,7 +75,7 @@ class ContourGenerator:
 
     @cached_property
     def _face_offsets(self) -> np.ndarray:
-        """Each face's plane offset ``n . c`` (F,): a face turns away from a source ``s``
+        """Each face's plane offset ``n . c`` (F,): a face is turned towards a source ``s``
         when ``n . s > n . c``, one product per face and query instead of a difference and
         a product."""
         return np.einsum("ij,ij->i", self.face_centres, self.face_normals)
