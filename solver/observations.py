@@ -80,14 +80,14 @@ class DistanceMap:
         """
         h, w = self.values.shape
         local = uv - np.asarray(self.origin, float)
-        upper = (w - 1 - 1e-9, h - 1 - 1e-9)
-        clamped = np.clip(local, 0, upper)
-        corner = clamped.astype(np.int64)  # floor: both are >= 0
-        fraction = clamped - corner
-        fu, fv = fraction[:, 0], fraction[:, 1]
-        # The four neighbours (4, N) by flat index, gathered at once.
-        at = corner[:, 1] * w + corner[:, 0]
-        v00, v10, v01, v11 = self.values.ravel()[np.array([0, 1, w, w + 1])[:, None] + at]
+        u = np.clip(local[:, 0], 0, w - 1 - 1e-9)
+        v = np.clip(local[:, 1], 0, h - 1 - 1e-9)
+        iu, iv = u.astype(np.int64), v.astype(np.int64)  # floor: both are >= 0
+        fu, fv = u - iu, v - iv
+        # The four neighbours by flat index (cheaper than paired fancy indexing).
+        flat = self.values.ravel()
+        at = iv * w + iu
+        v00, v10, v01, v11 = flat[at], flat[at + 1], flat[at + w], flat[at + w + 1]
         top = v00 * (1 - fu) + v10 * fu
         bottom = v01 * (1 - fu) + v11 * fu
         value = top * (1 - fv) + bottom * fv
@@ -95,12 +95,12 @@ class DistanceMap:
         grad[:, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
         grad[:, 1] = bottom - top
         # Any projection beyond the window? (reductions instead of tests per point)
-        if local.min() < 0 or np.any(local.max(axis=0) > upper):
-            outside = local - clamped
-            beyond = outside != 0
-            far = np.any(beyond, axis=1)
+        if local.min() < 0 or local[:, 0].max() > w - 1 - 1e-9 or local[:, 1].max() > h - 1 - 1e-9:
+            outside = local - np.column_stack([u, v])
+            clamped = outside != 0
+            far = np.any(clamped, axis=1)
             dist_out = row_norms(outside)
-            grad[beyond] = 0.0
+            grad[clamped] = 0.0
             value = value + dist_out
             grad[far] += outside[far] / dist_out[far, None]
         return value, grad

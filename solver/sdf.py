@@ -171,7 +171,7 @@ class SignedDistanceField:
         # 2b + c], gathered at once; the interpolation then runs on pairs of rows (z-pairs,
         # then y-pairs) rather than on each corner.
         offsets = np.array([(a * ny + b) * nz + c for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        corner = flat[offsets[:, None] + base].astype(float)
+        corner = flat.take(offsets[:, None] + base).astype(float)
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
         # Interpolate along z, then y, then x, keeping the partial derivatives exact.
         dz = corner[1::2] - corner[0::2]
