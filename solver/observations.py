@@ -94,10 +94,11 @@ class DistanceMap:
         grad = np.empty((len(uv), 2))
         grad[:, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
         grad[:, 1] = bottom - top
-        outside = local - np.column_stack([u, v])
-        clamped = outside != 0
-        far = np.any(clamped, axis=1)
-        if np.any(far):
+        # Any projection beyond the window? (reductions instead of tests per point)
+        if local.min() < 0 or local[:, 0].max() > w - 1 - 1e-9 or local[:, 1].max() > h - 1 - 1e-9:
+            outside = local - np.column_stack([u, v])
+            clamped = outside != 0
+            far = np.any(clamped, axis=1)
             dist_out = row_norms(outside)
             grad[clamped] = 0.0
             value = value + dist_out

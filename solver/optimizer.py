@@ -155,8 +155,13 @@ def _evaluate(terms: list[Term], state: State, jacobians: bool):
 
 def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """Rows of ``values`` summed by ``index`` into ``n`` bins (a vectorised scatter-add)."""
+    return _sum_rows(_selector(index, n), values)
+
+
+def _sum_rows(selector: sparse.csc_matrix, values: np.ndarray) -> np.ndarray:
+    """Rows of ``values`` summed into the bins of a :func:`_selector`."""
     flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
-    return np.asarray(_selector(index, n) @ flat).reshape((n,) + values.shape[1:])
+    return np.asarray(selector @ flat).reshape((selector.shape[0],) + values.shape[1:])
 
 
 def _selector(index: np.ndarray, n: int) -> sparse.csc_matrix:
@@ -189,12 +194,12 @@ class NormalEquations:
     H_px: np.ndarray  # (K, 6, 3)
 
     @cached_property
-    def coupling(self) -> tuple[np.ndarray, np.ndarray, list]:
+    def coupling(self) -> tuple[np.ndarray, np.ndarray, list, sparse.csc_matrix]:
         """Each point's coupling blocks padded to a fixed count ``k`` (``W`` (X, k, 6, 3);
-        the dummy pose P fills the gaps in ``pose_of`` (X, k)), and for every slot pair a <= b
+        the dummy pose P fills the gaps in ``pose_of`` (X, k)), for every slot pair a <= b
         the selector that sums its (6, 6) reductions into the (P+1)^2 pose-pair blocks (the
-        pair b, a is their transpose). It does
-        not depend on the damping, so the trial steps of one iteration share it."""
+        pair b, a is their transpose), and the selector that sums the (X * k) slots by pose.
+        It does not depend on the damping, so the trial steps of one iteration share it."""
         P, X = len(self.g_p) // 6, len(self.H_xx)
         first = np.searchsorted(self.pair_point, np.arange(X))
         slot = np.arange(len(self.pair_point)) - first[self.pair_point]
@@ -205,7 +210,7 @@ class NormalEquations:
         pose_of[self.pair_point, slot] = self.pair_pose
         pairs = [(a, b, _selector(pose_of[:, a] * (P + 1) + pose_of[:, b], (P + 1) ** 2))
                  for a in range(k_max) for b in range(a, k_max)]
-        return W, pose_of, pairs
+        return W, pose_of, pairs, _selector(pose_of.reshape(-1), P + 1)
 
 
 def build_normal_equations(
@@ -222,11 +227,12 @@ def build_normal_equations(
         w = term.weight * term.loss.weight(s)  # (N,)
         wr = (w[:, None] * lin.residuals).reshape(-1)  # (N*m,)
         sqrt_w = np.sqrt(w)[:, None, None]
+        weighted = [(a, (sqrt_w * Ja).reshape(-1, 6)) for a, Ja in lin.pose_jacobians]
         for a, Ja in lin.pose_jacobians:
-            Ja_flat = Ja.reshape(-1, 6)
-            g_blocks[a] += Ja_flat.T @ wr
-            for b, Jb in lin.pose_jacobians:
-                H_blocks[a, b] += (sqrt_w * Ja).reshape(-1, 6).T @ (sqrt_w * Jb).reshape(-1, 6)
+            g_blocks[a] += Ja.reshape(-1, 6).T @ wr
+        for a, Ja_w in weighted:
+            for b, Jb_w in weighted:
+                H_blocks[a, b] += Ja_w.T @ Jb_w
         if lin.point_jacobian is not None:
             x_idx, Jx = lin.point_jacobian
             Jx_w = w[:, None, None] * Jx
@@ -259,25 +265,26 @@ def _reduced_system(
     Damping ``lam * diag`` is applied to the pose and point blocks *before* elimination, so
     the step equals that of the damped full system."""
     P = n_poses
+    H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
+    if len(ne.H_xx) == 0:  # no points to eliminate (the silhouette stages)
+        return H_pp, -ne.g_p, np.zeros((0, 3, 3))
     V = ne.H_xx.copy()
     diag = np.einsum("xii->xi", V)
     reg = _POINT_REGULARISATION * np.maximum(diag.sum(axis=1), 1e-9)
     V[:, np.arange(3), np.arange(3)] += lam * diag + reg[:, None]
     V_inv = _inverse_3x3(V)
 
-    W, pose_of, pairs = ne.coupling
+    W, pose_of, pairs, by_pose = ne.coupling
     Y = W @ V_inv[:, None]  # (X, k, 6, 3)
     blocks = np.zeros((P + 1, P + 1, 6, 6))
     for a, b, selector in pairs:
         reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
-        summed = (selector @ reduction.reshape(-1, 36)).reshape(P + 1, P + 1, 6, 6)
+        summed = _sum_rows(selector, reduction).reshape(P + 1, P + 1, 6, 6)
         blocks += summed
         if b != a:  # slot pair (b, a) is the transpose (V_inv is symmetric)
             blocks += summed.transpose(1, 0, 3, 2)
-    g_shift = _sum_by_index(pose_of.reshape(-1), np.einsum("xaij,xj->xai", Y, ne.g_x)
-                            .reshape(-1, 6), P + 1)
+    g_shift = _sum_rows(by_pose, np.einsum("xaij,xj->xai", Y, ne.g_x).reshape(-1, 6))
 
-    H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
     S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
     rhs = -ne.g_p + g_shift[:P].reshape(-1)
     return S, rhs, V_inv
@@ -286,10 +293,12 @@ def _reduced_system(
 def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float):
     """LM step (pose increments (6P,), point increments (X, 3)) for damping ``lam``."""
     S, rhs, V_inv = _reduced_system(ne, n_poses, lam)
-    W, pose_of, _ = ne.coupling
     S_free = S[np.ix_(free, free)]
     d_p = np.zeros(6 * n_poses)
     d_p[free] = np.linalg.solve(S_free, rhs[free])
+    if len(V_inv) == 0:
+        return d_p, np.zeros((0, 3))
+    W, pose_of, *_ = ne.coupling
     d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])
     coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])  # sum_a H_xp d_p
     d_x = -np.einsum("xij,xj->xi", V_inv, ne.g_x + coupled)
@@ -400,7 +409,7 @@ def pose_covariance(
         ids.append(x_idx)
         b.append(w[:, None] * Jx[:, 0, :])
     ids, b = np.concatenate(ids), np.concatenate(b)
-    W, pose_of, _ = ne.coupling
+    W, pose_of, *_ = ne.coupling
     moved = np.einsum("rkij,rj->rki", W[ids] @ V_inv[ids][:, None], b)  # (R, k, 6)
     # Each shared error's pull on every pose: the rows' pulls summed by error and pose.
     n_errors = len(shared.covariance)

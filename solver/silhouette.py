@@ -73,8 +73,15 @@ class ContourGenerator:
             open_edge_faces=np.repeat(np.arange(len(faces)), 3)[is_open],
         )
 
+    @cached_property
+    def _face_offsets(self) -> np.ndarray:
+        """Each face's plane offset ``n . c`` (F,): a face is turned towards a source ``s``
+        when ``n . s > n . c``, one product per face and query instead of a difference and
+        a product."""
+        return np.einsum("ij,ij->i", self.face_centres, self.face_normals)
+
     def _front_facing(self, source_in_model: np.ndarray) -> np.ndarray:
-        return np.einsum("ij,ij->i", self.face_centres - source_in_model, self.face_normals) < 0
+        return self.face_normals @ source_in_model > self._face_offsets
 
     def _contour_edges(self, T_cam_model: Pose) -> tuple[np.ndarray, np.ndarray]:
         """The contour generators (E, 2), each run as its front-facing face runs it, and the
@@ -98,9 +105,12 @@ class ContourGenerator:
         generators, front = self._contour_edges(T_cam_model)
         edges = np.vstack([generators, self.open_edges[front[self.open_edge_faces]]])
         height, width = -(-camera.height // downscale), -(-camera.width // downscale)
-        used, index = np.unique(edges, return_inverse=True)
-        uv = camera.project(T_cam_model.apply(self.vertices[used])) / downscale
-        a, b = uv[index.reshape(-1, 2)[:, 0]], uv[index.reshape(-1, 2)[:, 1]]
+        # Both ends of every edge projected at once: each vertex about twice, which costs
+        # less than finding the distinct ones.
+        uv = (camera.project(T_cam_model.apply(self.vertices[edges.reshape(-1)])) / downscale
+              ).reshape(-1, 2, 2)
+        a, b = uv[:, 0], uv[:, 1]
+        uv = uv.reshape(-1, 2)
         # Only the outline's bounding box (within the image) is accumulated: outside it no
         # row is crossed, and left of every crossing the winding number is zero.
         (left, upper), (right, lower) = (np.clip(np.ceil(uv.min(axis=0)), 0, [width, height]),
@@ -125,10 +135,11 @@ class ContourGenerator:
         mask[upper:lower, left:right] = np.abs(np.cumsum(crossings, axis=1)[:, :box_w]) > 0.5
         # Pixels the outline passes through belong to the footprint too, as when faces are
         # filled with their edges drawn: an outline point always falls in a footprint pixel.
-        steps = np.ceil(np.max(np.abs(b - a), axis=1)).astype(np.int64) + 1
+        delta = b - a
+        steps = np.ceil(np.max(np.abs(delta), axis=1)).astype(np.int64) + 1
         along, place = _runs(steps)
         s = place / (steps[along] - 1).clip(1)
-        on_outline = np.round(a[along] + s[:, None] * (b[along] - a[along])).astype(np.int64)
+        on_outline = np.round(a[along] + s[:, None] * delta[along]).astype(np.int64)
         inside = ((on_outline[:, 0] >= 0) & (on_outline[:, 0] < width)
                   & (on_outline[:, 1] >= 0) & (on_outline[:, 1] < height))
         mask[on_outline[inside, 1], on_outline[inside, 0]] = 1
@@ -171,14 +182,14 @@ class ContourGenerator:
         edges = self._contour_edges(T_cam_model)[0]
         if len(edges) == 0:
             return np.zeros((0, 3))
-        a, b = self.vertices[edges[:, 0]], self.vertices[edges[:, 1]]
-        uv_a = camera.project(T_cam_model.apply(a))
-        uv_b = camera.project(T_cam_model.apply(b))
-        counts = np.maximum(1, np.ceil(row_norms(uv_b - uv_a) / spacing_px)).astype(int)
+        ends = self.vertices[edges]  # (E, 2, 3)
+        uv_ends = camera.project(T_cam_model.apply(ends.reshape(-1, 3))).reshape(-1, 2, 2)
+        uv_a, uv_delta = uv_ends[:, 0], uv_ends[:, 1] - uv_ends[:, 0]
+        counts = np.maximum(1, np.ceil(row_norms(uv_delta) / spacing_px)).astype(int)
         edge_index, place = _runs(counts)
         # Sample at the centres of equal sub-segments, so shared end-points are not doubled.
         s = (place + 0.5) / counts[edge_index]
-        uv = uv_a[edge_index] + s[:, None] * (uv_b[edge_index] - uv_a[edge_index])
+        uv = uv_a[edge_index] + s[:, None] * uv_delta[edge_index]
 
         keep = camera.in_field(uv, fov_margin_px)
         if outer_only and np.any(keep):
@@ -189,4 +200,5 @@ class ContourGenerator:
             keep &= interior[pix[:, 1], pix[:, 0]] == 0
         # Most samples fall on interior folds: only the kept ones are carried to the model.
         edge_index, s = edge_index[keep], s[keep]
-        return a[edge_index] + s[:, None] * (b[edge_index] - a[edge_index])
+        a = ends[edge_index, 0]
+        return a + s[:, None] * (ends[edge_index, 1] - a)

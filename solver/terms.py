@@ -31,7 +31,36 @@ from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
 from .sdf import SignedDistanceField
 
 __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
-           "projected"]
+           "pose_increments", "projected"]
+
+
+def pose_increments(
+    state: State, view: int, body: int | None, X: np.ndarray, G_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Jacobians with respect to the view and body poses of quantities whose gradient with
+    respect to the camera-frame point ``T X`` is ``G_cam`` (N, ..., 3), at body-frame points
+    ``X`` (N, 3).
+
+    Returns ``d / d xi_view`` (N, ..., 6), ``d / d xi_body`` (N, ..., 6) or None for the
+    bone, and the gradient with respect to ``X`` (N, ..., 3). A right increment
+    ``(rho, phi)`` of a pose ``T`` moves ``T p`` by ``R rho - R [p]x phi``; for a row ``g``
+    of ``G_cam R`` the second block is ``-g [p]x = (p x g)``, which is how the blocks are
+    formed without a batched product per point.
+    """
+    def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """(N, ..., 6) from ``G`` = d / d(T p) R (N, ..., 3) and the pose's source points p."""
+        p = p.reshape((len(p),) + (1,) * (G.ndim - 2) + (3,))
+        return np.concatenate([G, cross(p, G)], axis=-1)
+
+    def rotated(G: np.ndarray, R: np.ndarray) -> np.ndarray:
+        return (G.reshape(-1, 3) @ R).reshape(G.shape)
+
+    G_view = rotated(G_cam, state.poses[view].R)
+    if body is None:
+        return increments(G_view, X), None, G_view
+    T_body = state.poses[body]
+    G_body = rotated(G_view, T_body.R)
+    return increments(G_view, T_body.apply(X)), increments(G_body, X), G_body
 
 
 def projected(
@@ -41,29 +70,16 @@ def projected(
     """Pixels of body-frame points and their Jacobians.
 
     Returns ``uv`` (N, 2), ``d uv / d xi_view`` (N, 2, 6), ``d uv / d xi_body`` (N, 2, 6) or
-    None for the bone, and ``d uv / d X`` (N, 2, 3). Without ``jacobians`` (trial steps:
-    half of all evaluations) only ``uv`` is computed and the rest is None.
-
-    A right increment ``(rho, phi)`` of a pose ``T`` moves ``T p`` by ``R rho - R [p]x phi``;
-    for a row ``g`` of ``d uv / d(T p) R`` the second block is ``-g [p]x = (p x g)``, which
-    is how the (N, 2, 6) blocks are formed without a batched product per point.
+    None for the bone, and ``d uv / d X`` (N, 2, 3) (see :func:`pose_increments`). Without
+    ``jacobians`` (trial steps: half of all evaluations) only ``uv`` is computed and the
+    rest is None.
     """
     T_view = state.poses[view]
     T = T_view if body is None else T_view @ state.poses[body]
     if not jacobians:
         return camera.project(T.apply(X)), None, None, None
     uv, J_proj = camera.project_with_jacobian(T.apply(X))
-
-    def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """(N, 2, 6) from ``G`` = d uv / d(T p) R (N, 2, 3) and the pose's source points p."""
-        return np.concatenate([G, cross(p[:, None, :], G)], axis=2)
-
-    G_view = (J_proj.reshape(-1, 3) @ T_view.R).reshape(-1, 2, 3)
-    if body is None:
-        return uv, increments(G_view, X), None, G_view
-    T_body = state.poses[body]
-    G_body = (G_view.reshape(-1, 3) @ T_body.R).reshape(-1, 2, 3)
-    return uv, increments(G_view, T_body.apply(X)), increments(G_body, X), G_body
+    return (uv,) + pose_increments(state, view, body, X, J_proj)
 
 
 def _pose_jacobians(view: int, body: int | None, J_view: np.ndarray,
@@ -179,7 +195,7 @@ class ModelProjectionTerm:
     _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
     _nearest: np.ndarray | None = field(default=None, init=False, repr=False)
 
-    def _T_cam_body(self, state: State):
+    def _T_cam_body(self, state: State) -> Pose:
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
@@ -203,36 +219,42 @@ class ModelProjectionTerm:
         return r[: len(r) - len(self.observed)], r[len(r) - len(self.observed):]
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
+        T_cam_body = self._T_cam_body(state)
         if self._outline is None or (jacobians and not self.freeze_outline):
-            self._outline = self._trace(self._T_cam_body(state))
+            self._outline = self._trace(T_cam_body)
             self._nearest = None
         S = self._outline
         if len(S) == 0:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)
             return Linearization(r)
-        uv, J_view, J_body, _ = projected(state, self.view, self.body, S, self.camera, jacobians)
+        p_cam = T_cam_body.apply(S)
+        if jacobians:
+            uv, J_proj = self.camera.project_with_jacobian(p_cam)
+        else:
+            uv = self.camera.project(p_cam)
         dist, grad = self.distance_map.query(uv)
         if jacobians or self._nearest is None:
             # A few hundred points, queried once: an unbalanced, uncompacted tree builds faster.
             tree = cKDTree(uv, balanced_tree=False, compact_nodes=False)
             self._nearest = tree.query(self.observed)[1]
         nearest = self._nearest
-        nearest_dist = row_norms(uv[nearest] - self.observed)
+        offset = uv[nearest] - self.observed
+        nearest_dist = row_norms(offset)
         r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px
         if not jacobians:
             return Linearization(r)
-        direction = (uv[nearest] - self.observed) / np.maximum(nearest_dist, 1e-9)[:, None]
-        # d r / d xi = (d r / d uv) (d uv / d xi), for the silhouette's own points and for
-        # the silhouette point nearest each observed pixel.
+        direction = offset / np.maximum(nearest_dist, 1e-9)[:, None]
+        # d r / d xi = (d r / d uv) (d uv / d p_cam) (d p_cam / d xi), for the silhouette's
+        # own points and for the silhouette point nearest each observed pixel; the pixel
+        # gradient is carried to the camera frame first, so the poses' blocks are formed
+        # for one row per residual instead of two.
         rows = np.concatenate([np.arange(len(S)), nearest])
         J_pix = np.concatenate([grad, direction]) / self.sigma_px  # (N, 2)
-
-        def chained(J_uv: np.ndarray) -> np.ndarray:
-            return np.einsum("nk,nkj->nj", J_pix, J_uv[rows])[:, None, :]
-
-        J_b = None if J_body is None else chained(J_body)
-        return Linearization(r, _pose_jacobians(self.view, self.body, chained(J_view), J_b))
+        J_cam = np.einsum("nk,nkj->nj", J_pix, J_proj[rows])  # (N, 3)
+        J_view, J_body, _ = pose_increments(state, self.view, self.body, S[rows], J_cam)
+        J_b = None if J_body is None else J_body[:, None, :]
+        return Linearization(r, _pose_jacobians(self.view, self.body, J_view[:, None, :], J_b))
 
 
 @dataclass
