@@ -114,6 +114,7 @@ class LMOptions:
     relative_tolerance: float = 1e-6  # stop when the cost falls by less than this fraction
     step_tolerance: float = 1e-7  # ... or the pose step (rad / mm) is this small
     initial_lambda: float = 1e-3
+    min_lambda: float = 1e-9
     max_lambda: float = 1e8
 
 
@@ -346,7 +347,7 @@ def levenberg_marquardt(
         decrease = (cost - cand_cost) / max(cost, 1e-12)
         state, cost, costs = candidate, cand_cost, cand_costs
         history.append(cost)
-        lam = max(lam / 10.0, 1e-9)
+        lam = max(lam / 10.0, options.min_lambda)
         settled = None if callback is None else callback(
             IterationInfo(iteration, cost, dict(costs), lam, True, state))
         if settled:
