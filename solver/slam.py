@@ -317,6 +317,9 @@ class JointProblem:
         self.n_views = len(views)
         self.pixels = {(k, label): thin_contour(v.contours[label], config.edge_spacing_px)
                        for k, v in enumerate(views) for label in LABELS}
+        # ... and more sparsely for the coarse silhouette stages (SolverConfig.coarse_thinning).
+        self.coarse_pixels = {key: thin_contour(px, config.edge_spacing_px * config.coarse_thinning)
+                              for key, px in self.pixels.items()}
 
     def point_counts(self) -> dict[str, int]:
         """Kept contour points per view and label, for the result document."""
@@ -410,8 +413,7 @@ class JointProblem:
                     (self.bone.coarse_contour if light and label == "bone"
                      else self.model(label).contour),
                     view.distance_map(label),
-                    (thin_contour(self.pixels[k, label], c.edge_spacing_px * thinning) if thinned
-                     else self.pixels[k, label]),
+                    (self.coarse_pixels if thinned else self.pixels)[k, label],
                     c.sigma_px, c.silhouette_spacing_px * thinning,
                     outer_only=(label == "bone"), weight=weight, loss=loss,
                     freeze_outline=freeze_outline))
