@@ -178,6 +178,12 @@ class SolverConfig:
     # rays, within 0.6 mm of the surface) and STR 0.3-0.6 deg off, 3-5 sigma; a wrong basin
     # of the real tibia left 1.2 mm off the surface.
     max_pin_graze_offset_mm: float = 0.8
+    # The cutting block's guide holes hold its two pins parallel, and the cut is measured as
+    # parallel to their plane: pins found further from parallel than this mean a pin pose is
+    # wrong (or the premise of the measurement does not hold). Correct solves in the studies
+    # left them at most 0.45 deg apart; a wrong basin seen without the encoder factor (one
+    # pin 31 deg off, its outline a tenth off by 40 px, under the pin gate) 28 deg.
+    max_pin_divergence_deg: float = 3.0
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
@@ -678,6 +684,17 @@ def _contour_misfit(problem: JointProblem, state: State, terms: list[Term],
     return _outline_misfit(problem, state, LABELS, c.max_silhouette_median_px)
 
 
+def _pin_divergence(problem: JointProblem, state: State) -> str | None:
+    """Why the solved pins cannot be the block's parallel pair, or None."""
+    axes = [T.R[:, 2] for T in state.poses[problem.n_views:]]
+    angle_deg = float(np.degrees(np.arccos(np.clip(abs(axes[0] @ axes[1]), -1.0, 1.0))))
+    limit_deg = problem.config.max_pin_divergence_deg
+    if angle_deg > limit_deg:
+        return (f"the pins are {angle_deg:.1f} deg from parallel (> {limit_deg:g} deg): the "
+                f"cutting block holds them parallel, so a pin's pose is wrong")
+    return None
+
+
 def _outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...],
                     limit_px: float) -> str | None:
     """The first model of ``labels`` whose silhouette, traced at ``state``, lies further
@@ -783,7 +800,7 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     if not fine.converged:
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
                         rms, start, went_astray=True)
-    misfit = _contour_misfit(problem, state, terms, rms)
+    misfit = _contour_misfit(problem, state, terms, rms) or _pin_divergence(problem, state)
     if misfit is not None:
         return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])

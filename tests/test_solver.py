@@ -450,6 +450,36 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
     assert max(_errors(case, outcome)) < 0.2
 
 
+def test_pins_that_are_not_parallel_are_named(phantom_plan):
+    """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
+    tip (whatever the contours say) is refused by name."""
+    from solver.geometry import rotation_about
+    from solver.slam import _pin_divergence
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=8))
+    problem = JointProblem(phantom_plan, case.views, SolverConfig())
+    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    assert _pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
+    # Turned about its own axis, a pin is the same pin.
+    spun = Pose(truth[-1].R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), truth[-1].t)
+    assert _pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
+    turned = Pose(truth[-1].R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), truth[-1].t)
+    reason = _pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
+    assert reason is not None and "5.0 deg from parallel" in reason
+
+
+def test_pins_far_from_parallel_send_the_solve_to_the_global_search(real_plan):
+    """Study case (real tibia, level 2, seed 2073, without the encoder factor): the coarse
+    stages left view 2 8 deg off and turned pin 2 31 deg, a tenth of its outline 40 px off
+    its contour (within the pin outline gate, which allows for pin ends missed by the
+    contour extraction), and it reported CTR 1.45 deg off with a 0.09 deg sigma. The pins,
+    28 deg from parallel, send it to the global search, which measures it."""
+    case = simulate_case(real_plan, SimulationConfig.at_level(2, 2073))
+    outcome = solve_joint(real_plan, case.views, case.initial, SolverConfig(method="slam-noenc"))
+    assert outcome.status == "measured" and outcome.initialisation == "global set-up search"
+    assert max(_errors(case, outcome)) < 0.2
+
+
 def test_a_pin_partly_off_its_contour_sends_the_solve_to_the_global_search(real_plan):
     """Study case (real tibia, level 4, seed 4026): the first solve put pin 2 where half its
     outline lies on its contour and the rest 100-250 px away, with the outlines' median
