@@ -308,14 +308,14 @@ def test_an_unknown_method_is_refused_by_name():
 def test_a_model_outline_off_its_contour_is_named(real_plan):
     """The final fit check traces every silhouette at the final poses: a pin 4 mm off
     (a solve caught in a wrong basin) is refused by name, the true poses pass."""
-    from solver.slam import _contour_misfit
+    from solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
-    assert _contour_misfit(problem, State(truth, np.zeros((0, 3))), [], {}) is None
+    assert contour_misfit(problem, State(truth, np.zeros((0, 3))), [], {}) is None
     moved = Pose(truth[-2].R, truth[-2].t + 4.0 * truth[-2].R[:, 0])
-    reason = _contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))), [],
+    reason = contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))), [],
                              {})
     assert reason is not None and "pin1 outline" in reason
     # A pin turned 2 deg about its tip keeps most of its outline near the contour (a small
@@ -324,26 +324,26 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
 
     turned = Pose(truth[-1].R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), truth[-1].t)
     strict = JointProblem(real_plan, case.views, SolverConfig(max_pin_outline_p90_px=6.0))
-    reason = _contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))), [], {})
+    reason = contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))), [], {})
     assert reason is not None and "pin2 outline" in reason and "leaves its contour" in reason
 
 
 def test_pin_edge_points_off_the_pin_are_named(real_plan):
     """Edge points seated at the true poses lie on the pins; those of one pin in one view
     carried 1.5 mm off it (its views disagree about where it is) are refused by name."""
-    from solver.slam import _contour_misfit
+    from solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8, noise_px=0.0))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
     terms = problem.edge_terms(points, groups)
-    assert _contour_misfit(problem, State(truth, points), terms, {}) is None
+    assert contour_misfit(problem, State(truth, points), terms, {}) is None
     ids = groups[1, "pin2"].ids
     _, outward = real_plan.pin_model().sdf.query(points[ids])
     moved = points.copy()
     moved[ids] += 1.5 * outward / np.linalg.norm(outward, axis=1, keepdims=True)
-    reason = _contour_misfit(problem, State(truth, moved), terms, {})
+    reason = contour_misfit(problem, State(truth, moved), terms, {})
     assert reason is not None and "pin2 edge points of view view2 lie off the pin" in reason
 
 
@@ -401,14 +401,14 @@ def test_stray_bone_contour_points_get_no_edge_points(phantom_plan):
 def test_a_bone_contour_that_mostly_misses_the_bone_is_refused(phantom_plan):
     """A bone contour of which 30% of the rays miss the bone at the final poses is not its
     outline: refused by name."""
-    from solver.slam import _contour_misfit
+    from solver.gates import contour_misfit
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=12, noise_px=0.0))
     problem = JointProblem(phantom_plan, _with_stray_bone_pixels(case, 0.3, seed=2)[0],
                            SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
-    reason = _contour_misfit(problem, State(truth, points), problem.edge_terms(points, groups), {})
+    reason = contour_misfit(problem, State(truth, points), problem.edge_terms(points, groups), {})
     assert reason is not None and "bone contour of view" in reason and "lie more than 3 mm off" in reason
 
 
@@ -454,17 +454,17 @@ def test_pins_that_are_not_parallel_are_named(phantom_plan):
     """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
     tip (whatever the contours say) is refused by name."""
     from solver.geometry import rotation_about
-    from solver.slam import _pin_divergence
+    from solver.gates import pin_divergence
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
-    assert _pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
+    assert pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
     # Turned about its own axis, a pin is the same pin.
     spun = Pose(truth[-1].R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), truth[-1].t)
-    assert _pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
+    assert pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
     turned = Pose(truth[-1].R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), truth[-1].t)
-    reason = _pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
+    reason = pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
     assert reason is not None and "5.0 deg from parallel" in reason
 
 
