@@ -54,8 +54,10 @@ def input_refusal(problem: JointProblem, initial: InitialGuess) -> str | None:
 
 
 def residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int]:
-    """RMS of the whitened residuals of each energy term (in units of its sigma), and the
-    total number of residuals (for the degrees of freedom of the fit)."""
+    """RMS over each energy term's residual rows of the row's whitened length (in units of
+    its sigma: an edge point's pixel offset, its distance to the surface and along its ray,
+    all six components of a relative pose at once), and the total number of residuals (for
+    the degrees of freedom of the fit)."""
     sums: dict[str, list[float]] = {}
     total = 0
     for term in terms:
