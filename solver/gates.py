@@ -70,7 +70,7 @@ def residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int
 
 
 def contour_misfit(problem: JointProblem, state: State, terms: list[Term],
-                    rms: dict[str, float]) -> str | None:
+                   rms: dict[str, float]) -> str | None:
     """Why the contours do not fit the posed models, or None.
 
     Four checks: the re-projection RMS of the edge points (methods that have them), the share
@@ -117,7 +117,7 @@ def pin_divergence(problem: JointProblem, state: State) -> str | None:
 
 
 def outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...],
-                    limit_px: float) -> str | None:
+                   limit_px: float) -> str | None:
     """The first model of ``labels`` whose silhouette, traced at ``state``, lies further
     than ``limit_px`` (median, both sides) from its observed contour in some view, or, for
     a pin, a tenth of whose outline lies further than ``max_pin_outline_p90_px``, said in

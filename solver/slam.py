@@ -689,7 +689,8 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     if not fine.converged:
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
                         rms, start, went_astray=True)
-    misfit = gates.contour_misfit(problem, state, terms, rms) or gates.pin_divergence(problem, state)
+    misfit = (gates.contour_misfit(problem, state, terms, rms)
+              or gates.pin_divergence(problem, state))
     if misfit is not None:
         return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])
