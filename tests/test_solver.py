@@ -122,6 +122,26 @@ def test_a_plan_segmentation_error_widens_the_uncertainty_not_the_answer(phantom
     assert np.all(np.diag(segmented.angle_cov) > 4.0 * np.diag(exact.angle_cov))
 
 
+def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
+    """A point coupled to a pose by two terms gets the sum of both blocks; a coupling of one
+    term is kept as it is."""
+    _, _, state, terms = _linearized_problem(phantom_plan)
+    P, X = len(state.poses), len(state.points)
+    pin_rp = next(t for t in terms if t.name == "E_rp" and t.body is not None)
+
+    def couplings(term_list):
+        lins = [t.linearize(state) for t in term_list]
+        ne = optimizer.build_normal_equations(term_list, lins, P, X)
+        assert np.all(np.diff(ne.pair_point * P + ne.pair_pose) > 0)  # one block per pair
+        return {(int(x), int(a)): block for x, a, block in zip(ne.pair_point, ne.pair_pose, ne.H_px)}
+
+    alone, extra, shared = couplings(terms), couplings([pin_rp]), couplings(terms + [pin_rp])
+    assert shared.keys() == alone.keys() and len(extra) == 2 * len(pin_rp.point_ids)
+    for key, block in shared.items():
+        expected = alone[key] + extra[key] if key in extra else alone[key]
+        assert np.allclose(block, expected, rtol=1e-12, atol=1e-12)
+
+
 def test_schur_step_equals_the_dense_solution(real_plan):
     _, problem, state, terms = _linearized_problem(real_plan)
     P, X = len(state.poses), len(state.points)
