@@ -154,13 +154,29 @@ def _evaluate(terms: list[Term], state: State, jacobians: bool):
     return lins, costs
 
 
+def _sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``values`` summed over equal ``keys``: the distinct keys, sorted, and their
+    sums (a vectorised scatter-add: one sort, then each run of equal keys reduced)."""
+    if len(keys) == 0:
+        return keys, values
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return keys[starts], np.add.reduceat(values[order], starts)
+
+
 def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Rows of ``values`` summed by ``index`` into ``n`` bins (a vectorised scatter-add)."""
-    return _sum_rows(_selector(index, n), values)
+    """Rows of ``values`` summed by ``index`` into ``n`` bins."""
+    bins, sums = _sum_by_key(index, values)
+    summed = np.zeros((n,) + values.shape[1:])
+    summed[bins] = sums
+    return summed
 
 
 def _sum_rows(selector: sparse.csc_matrix, values: np.ndarray) -> np.ndarray:
-    """Rows of ``values`` summed into the bins of a :func:`_selector`."""
+    """Rows of ``values`` summed into the bins of a :func:`_selector`: for bins summed into
+    again and again (every trial step of an iteration), where building the selector once
+    pays."""
     flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
     return np.asarray(selector @ flat).reshape((selector.shape[0],) + values.shape[1:])
 
@@ -244,13 +260,8 @@ def build_normal_equations(
                 coupling_keys.append(x_idx * P + a)
                 coupling_vals.append(Ja.transpose(0, 2, 1) @ Jx_w)
     if coupling_keys:
-        # Blocks of the same (point, pose) pair summed: sorted by key, each run of equal keys
-        # reduced (a run is one block long when, as usual, one term couples them).
-        keys = np.concatenate(coupling_keys)
-        order = np.argsort(keys, kind="stable")
-        keys = keys[order]
-        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-        uniq, H_px = keys[starts], np.add.reduceat(np.concatenate(coupling_vals)[order], starts)
+        # One block per (point, pose) pair, summed over the terms that couple them.
+        uniq, H_px = _sum_by_key(np.concatenate(coupling_keys), np.concatenate(coupling_vals))
     else:
         uniq, H_px = np.zeros(0, np.int64), np.zeros((0, 6, 3))
     return NormalEquations(
