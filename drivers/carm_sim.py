@@ -89,10 +89,6 @@ class FaultSpec:
                 raise ValueError(f"fault {name}: the duration {value[0]} s must be positive and "
                                  f"shorter than the period {value[1]} s")
 
-    @property
-    def corrupts_line(self) -> bool:
-        return any((self.ber, self.drop, self.dup, self.noise))
-
     @staticmethod
     def parse(text: str) -> FaultSpec:
         """Parse ``key=value,...`` (see the module docstring)."""

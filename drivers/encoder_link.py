@@ -217,7 +217,6 @@ class LinkState:
     since_utc: datetime
     since_monotonic: float
     error: LinkError | None = None
-    device: DeviceIdentity | None = None
 
 
 @dataclass
@@ -372,10 +371,6 @@ class EncoderLink:
         return self._history
 
     @property
-    def device(self) -> DeviceIdentity | None:
-        return self._identity
-
-    @property
     def stats(self) -> LinkStats:
         return replace(self._stats, parser=replace(self._stats.parser))
 
@@ -423,12 +418,16 @@ class EncoderLink:
         return last
 
     def read_once(self, timeout: float = 0.25) -> EncoderReading:
-        """Ask the device for a reading now and wait for it (works while streaming too)."""
+        """Ask the device for a reading now and wait for it (works while streaming too).
+
+        Public API for tools and tests: the service reads the streamed history instead."""
         previous = self._history.last()
         self._send(MessageType.READ_ONCE)
         return self.wait_reading(timeout, None if previous is None else previous.sequence)
 
     def request_status(self, timeout: float = 0.25) -> Status:
+        """The device's STATUS (flags, stream rate, dropped frames) on request: public API for
+        tools and tests diagnosing a device; the service reads only the stream."""
         with self._changed:
             self._replies.pop(MessageType.STATUS, None)
         self._send(MessageType.STATUS_REQUEST)
@@ -447,8 +446,7 @@ class EncoderLink:
         return max_age_s
 
     def _make_state(self, status: str, reason: str, error: LinkError | None = None) -> LinkState:
-        return LinkState(status, reason, datetime.now(timezone.utc), time.monotonic(), error,
-                         self._identity if status in ("connected", "silent") else None)
+        return LinkState(status, reason, datetime.now(timezone.utc), time.monotonic(), error)
 
     def _set_state(self, status: str, reason: str, error: LinkError | None = None) -> None:
         if (status, reason) == (self._state.status, self._state.reason):
@@ -546,9 +544,10 @@ class EncoderLink:
                 f"the device on {self.port} speaks protocol version {frame.version}; this driver "
                 f"supports version {PROTOCOL_VERSION}")
         self._last_frame = time.monotonic()
-        if frame.type != MessageType.READING or self._identity is None:
+        device = self._identity
+        if frame.type != MessageType.READING or device is None:
             return True
-        return self._accept_reading(frame)
+        return self._accept_reading(frame, device)
 
     def _wait_reply(self, mtype: MessageType, deadline: float, pump: bool = True,
                     request_seq: int | None = None) -> Frame | None:
@@ -656,7 +655,7 @@ class EncoderLink:
                 self._send(MessageType.STREAM_START, encode_stream_start(cfg.rate_hz))
                 last_restart = time.monotonic()
 
-    def _accept_reading(self, frame: Frame) -> bool:
+    def _accept_reading(self, frame: Frame, device: DeviceIdentity) -> bool:
         """Validate a READING frame and put it in the history (see the module docstring).
 
         False for a frame whose content is impossible (wrong size, out of range, too fast):
@@ -664,7 +663,7 @@ class EncoderLink:
         repeats, are genuine frames that are merely not used."""
         stats, axes = self._stats, self._axes
         try:
-            flags, _, counts = decode_reading(frame.payload, len(axes.resolution))
+            flags, _, counts = decode_reading(frame.payload, device)
         except ProtocolError:
             stats.rejected_malformed += 1
             return False

@@ -244,10 +244,6 @@ class CArmKinematics:
                      [0.0, 0.0, -self.source_to_isocentre_mm])
         return self.T_carm_C(joints) @ mount
 
-    def T_carm_detector(self, joints: JointReading) -> Pose:
-        """Pose of the detector centre: camera axes, ``SID`` along the beam."""
-        return self.T_carm_cam(joints) @ Pose(np.eye(3), [0.0, 0.0, self.sid(joints)])
-
     def isocentre(self, joints: JointReading) -> np.ndarray:
         """The isocentre in ``carm``: on the beam, ``source_to_isocentre_mm`` from the source."""
         return self.T_carm_cam(joints).apply(np.array([0.0, 0.0, self.source_to_isocentre_mm]))
@@ -323,17 +319,18 @@ class PatientSetup:
 
 @dataclass(frozen=True)
 class RelativePose:
-    """The encoders' motion between two views and its uncertainty.
+    """The uncertainty of the encoders' motion between two views.
 
-    ``T_camB_camA`` maps view A's camera frame into view B's. ``covariance`` (6x6, order
-    translation mm then rotation vector rad) is that of the error this motion implies for
-    the tibia, expressed in the anatomical frame at the knee — the residual of the solver's
-    relative-pose term — propagated from the joint uncertainties of both views.
+    The motion itself, ``T_camB_camA`` (view A's camera frame into view B's), is that of the
+    poses :func:`initial_view_poses` returns: ``T_cam_tibia[b] @ T_cam_tibia[a].inverse()``.
+    ``covariance`` (6x6, order translation mm then rotation vector rad) is that of the error
+    this motion implies for the tibia, expressed in the anatomical frame at the knee — the
+    residual of the solver's relative-pose term — propagated from the joint uncertainties of
+    both views.
     """
 
     view_a: int
     view_b: int
-    T_camB_camA: Pose
     covariance: np.ndarray
 
     @property
@@ -376,8 +373,8 @@ def _relative_covariance(kinematics: CArmKinematics, ja: JointReading, jb: Joint
 
 def initial_view_poses(kinematics: CArmKinematics, joints_per_view: Sequence[JointReading],
                        setup: PatientSetup) -> tuple[list[Pose], list[RelativePose]]:
-    """Each view's ``T_cam_tibia`` from the encoders and the nominal set-up, and the motion
-    between every pair of views (i < j) with its covariance.
+    """Each view's ``T_cam_tibia`` from the encoders and the nominal set-up, and the
+    uncertainty of the motion between every pair of views (i < j).
 
     The absolute poses carry the set-up's uncertainty (degrees, centimetres); the relative
     motion does not depend on the set-up at all, which is why it is known much better.
@@ -396,7 +393,7 @@ def initial_view_poses(kinematics: CArmKinematics, joints_per_view: Sequence[Joi
         for b in range(a + 1, len(joints_per_view)):
             T_camA_anat = T_carm_cam[a].inverse() @ T_carm_anat
             cov = _relative_covariance(kinematics, joints_per_view[a], joints_per_view[b], T_camA_anat)
-            relatives.append(RelativePose(a, b, T_carm_cam[b].inverse() @ T_carm_cam[a], cov))
+            relatives.append(RelativePose(a, b, cov))
     return poses, relatives
 
 

@@ -246,6 +246,7 @@ class DeviceIdentity:
 
     @property
     def reading_size(self) -> int:
+        """Bytes of this device's READING payload: flags, fault mask, one count per axis."""
         return 4 + 4 * len(self.axes)
 
 
@@ -328,11 +329,11 @@ def encode_reading(flags: int, fault_mask: int, counts: np.ndarray) -> bytes:
     return encode_readings(np.array([flags]), np.array([fault_mask]), np.asarray(counts)[None, :])[0]
 
 
-def decode_reading(payload: bytes, n_axes: int) -> tuple[int, int, np.ndarray]:
-    """(flags, axis fault mask, counts) of a READING payload from a device with ``n_axes``."""
-    if len(payload) != 4 + 4 * n_axes:
-        raise ProtocolError(f"READING payload of {len(payload)} bytes; {4 + 4 * n_axes} expected "
-                            f"for {n_axes} axes")
+def decode_reading(payload: bytes, device: DeviceIdentity) -> tuple[int, int, np.ndarray]:
+    """(flags, axis fault mask, counts) of a READING payload from ``device``."""
+    if len(payload) != device.reading_size:
+        raise ProtocolError(f"READING payload of {len(payload)} bytes; {device.reading_size} "
+                            f"expected for {len(device.axes)} axes")
     flags, mask = _READING_HEAD.unpack_from(payload)
     return flags, mask, np.frombuffer(payload, dtype="<i4", offset=4).astype(np.int64)
 

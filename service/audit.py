@@ -3,7 +3,7 @@
 Rerun recordings are not crash-safe on their own, so every event that matters for the audit
 trail is also appended here and fsynced before the caller carries on (for a received
 instance: before the C-STORE success goes back). Lines are never rewritten; a line torn by
-a crash is skipped (and counted) when the log is read.
+a crash is skipped when the log is read.
 """
 
 from __future__ import annotations

@@ -413,7 +413,7 @@ def _malformed_inputs(seed: int) -> Iterator[tuple[str, Callable[[RawAssociation
         length = element_length_cases(data, True)[int(rng.integers(0, 6))][1]
         _, pdu, _ = next(malformed_pdus(1, int(rng.integers(1 << 30)), CARM_AE, SERVICE_AE))
         yield "truncated", lambda a: a.store(data[:cut], uid)
-        yield "path in the UID", lambda a: a.store(with_uid(data, uid, "../../../../tmp/x", True),
+        yield "path in the UID", lambda a: a.store(with_uid(data, "../../../../tmp/x", True),
                                                    "../../../../tmp/x")
         yield "pixel data length", lambda a: a.store(pixel, uid)
         yield "element length", lambda a: a.store(length, uid)

@@ -168,8 +168,8 @@ def uids(tally: Tally, target: Target, count: int) -> None:
     for i in range(count):
         name, command_uid, dataset_uid = cases[i % len(cases)]
         explicit = i % 2 == 0
-        data, uid = frame_dataset_bytes(i, 16, explicit)
-        data = with_uid(data, uid, dataset_uid, explicit)
+        data, _ = frame_dataset_bytes(i, 16, explicit)
+        data = with_uid(data, dataset_uid, explicit)
         _refused_store(tally, target, data, dataset_uid, name, 1 if explicit else 3, command_uid)
     spool = target.root / "spool" / "instances"
     strays = [p for p in target.root.rglob("*") if p.is_file() and p.parent != spool

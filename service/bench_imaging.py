@@ -110,8 +110,8 @@ def _calibration_study(sets: int, images: int, seed: int) -> dict:
                       nominal.width, nominal.height, nominal.fov_radius_px)
         distortion = default_distortion(true)
         phantom = simulate_phantom_images(true, distortion, PhantomSpec(), images, rng)
-        calibration, report = calibrate([CalibrationImage(f"img{i:02d}", p.image, (spacing, spacing), 1000.0)
-                                         for i, p in enumerate(phantom)])
+        calibration, report = calibrate([CalibrationImage(f"img{i:02d}", image, (spacing, spacing), 1000.0)
+                                         for i, image in enumerate(phantom)])
         c = calibration.camera
         rows.append({
             "focal_error_pct": 100.0 * abs(c.fx / true.fx - 1.0),

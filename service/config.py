@@ -22,8 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-import numpy as np
-
 from solver.anatomy import Landmarks
 
 __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
@@ -31,7 +29,7 @@ __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destinat
 
 ENV_PREFIX = "SLAMTKA_"
 _AE_TITLE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE VR: no backslash, no control
-_OBJECT_KINDS = ("json", "sr", "sc")
+_OBJECT_KINDS = ("sr", "sc")  # the DICOM results a destination can be sent (OutgoingObject.kind)
 
 
 class ConfigError(ValueError):
@@ -128,7 +126,7 @@ class Destination:
     ae_title: str = ""
     host: str = ""
     port: int = 104
-    objects: list[str] = field(default_factory=lambda: ["sr", "sc"])
+    objects: list[str] = field(default_factory=lambda: list(_OBJECT_KINDS))
     tls: bool = False
     ca_certificates: Path | None = None
     certificate: Path | None = None
@@ -141,17 +139,12 @@ class Destination:
         if not self.host:
             raise ConfigError(f"{where}.host: required")
         _check_range(f"{where}.port", self.port, 1, 65535)
-        bad = sorted(set(self.objects) - {"sr", "sc"})
+        bad = sorted(set(self.objects) - set(_OBJECT_KINDS))
         if bad or not self.objects:
             raise ConfigError(f"{where}.objects: {self.objects} must be a non-empty subset of "
-                              "['sr', 'sc']")
+                              f"{list(_OBJECT_KINDS)}")
         if self.tls and self.ca_certificates is None:
             raise ConfigError(f"{where}.ca_certificates: required when tls = true")
-
-
-# Any plausible tibia, to check the patient set-up table before a plan is known.
-_NOMINAL_LANDMARKS = Landmarks(np.zeros(3), np.array([0.0, 0.0, -370.0]), np.array([0.0, 1.0, 0.0]),
-                               "right")
 
 
 @dataclass(frozen=True)
@@ -185,7 +178,7 @@ class CarmConfig:
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}.{key}: {exc}") from None
         try:
-            PatientSetup.from_config(_NOMINAL_LANDMARKS, self.setup)
+            PatientSetup.from_config(Landmarks.nominal(), self.setup)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}.setup: {exc}") from None
         link = LinkConfig.from_config(self.link)

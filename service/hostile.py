@@ -256,7 +256,7 @@ def uid_cases() -> list[tuple[str, str, str]]:
     return cases
 
 
-def with_uid(data: bytes, old: str, new: str, explicit: bool) -> bytes:
+def with_uid(data: bytes, new: str, explicit: bool) -> bytes:
     """``data`` with the SOP Instance UID element's value replaced (length fixed up)."""
     tag = struct.pack("<HH", 0x0008, 0x0018)
     pos = data.index(tag + (b"UI" if explicit else b""))

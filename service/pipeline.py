@@ -30,7 +30,7 @@ from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
 from solver.geometry import Pose
-from solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
+from solver.imaging.contours import ContourError, extract_contours, load_manual_contours
 from solver.measurement import pin_axis_points
 from solver.observations import LABELS, ViewObservation
 from solver.plan import Plan
@@ -55,6 +55,8 @@ _PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
 _SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
 _SC_CLASS = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
 _RESULT_UID_NAMESPACE = uuid.UUID("5f0c3a52-7b1e-4c55-9d0e-51a3c0a7e2b4")  # slamtka results
+# The defaults, as `slamtka replay --resolve` assumes when it solves a recording again.
+_SOLVER_CONFIG = SolverConfig()
 
 
 @dataclass
@@ -98,15 +100,13 @@ class Pipeline:
     """Runs cases; everything it needs is built once at service start."""
 
     def __init__(self, spool: Spool, plans: PlanStore, calibration, geometry: ViewGeometry,
-                 output_root: Path, *, contour_config: ContourConfig = ContourConfig(),
-                 solver_config: SolverConfig = SolverConfig(),
-                 manual_contours_dir: Path | None = None, institution: str = ""):
+                 output_root: Path, *, manual_contours_dir: Path | None = None,
+                 institution: str = ""):
         self.spool, self.plans, self.calibration, self.geometry = spool, plans, calibration, geometry
         self.output_root = Path(output_root)
-        self.contour_config, self.solver_config = contour_config, solver_config
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
         self._extracted: OrderedDict[str, tuple[dict | None, str]] = OrderedDict()
-        self._pins: dict[int, tuple[Pose, Pose]] = {}
+        self._pins: tuple[Plan, tuple[Pose, Pose]] | None = None
 
     def warm_up(self) -> None:
         """Build a throwaway report and image once, so that the first case does not pay for
@@ -150,8 +150,8 @@ class Pipeline:
         uid = view.sop_instance_uid
         if uid not in self._extracted:
             try:
-                found = extract_contours(frame.pixels, self.contour_config,
-                                         self._expected_pins(plan, T_cam_tibia, pins))
+                found = extract_contours(frame.pixels,
+                                         expected_pins=self._expected_pins(plan, T_cam_tibia, pins))
                 self._extracted[uid] = (found.as_dict(), "extracted")
             except ContourError as exc:
                 self._extracted[uid] = (None, f"contours could not be extracted ({exc})")
@@ -174,10 +174,11 @@ class Pipeline:
             self._extract(plan, view, frame, T, self._planned_pins(plan))
 
     def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
-        key = id(plan)
-        if key not in self._pins:
-            self._pins = {key: planned_pins(plan)}
-        return self._pins[key]
+        """The planned pins of ``plan``, kept for the plan last asked about (the object itself:
+        an id could be reused by a plan loaded after this one was dropped)."""
+        if self._pins is None or self._pins[0] is not plan:
+            self._pins = (plan, planned_pins(plan))
+        return self._pins[1]
 
     def _expected_pins(self, plan: Plan, T_cam_tibia: Pose, pins: tuple[Pose, Pose]) -> np.ndarray:
         """Raw pixel positions of the planned pins' centres in one view (pin labelling)."""
@@ -241,7 +242,7 @@ class Pipeline:
                   "laterality": case.laterality},
             sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used)
                      for i in items] + refused,
-            outcome=outcome, plan=plan, views=observations,
+            outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=observations,
             calibration={"id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
             initial=initial, reasons=reasons, timings=timings,
             outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
@@ -325,7 +326,7 @@ class Pipeline:
             return None, observations, initial
 
         recorder.stage("solve")
-        outcome = solve_joint(plan, observations, initial, self.solver_config,
+        outcome = solve_joint(plan, observations, initial, _SOLVER_CONFIG,
                               callback=recorder.iteration)
         lap("solve")
         recorder.stage("plane_and_angles", outcome.status)
@@ -352,7 +353,7 @@ class Pipeline:
                          "pin": vars(plan.pin_spec) if plan.pin_spec is not None else None,
                          "bone_mesh_sha256": mesh_digest(plan.bone_meshes()),
                          "pin_mesh_sha256": mesh_digest([plan.pin_mesh])},
-                "solver_config": repr(self.solver_config)}
+                "solver_config": repr(_SOLVER_CONFIG)}
 
     @staticmethod
     def _source(view: View, view_id: str, contours: str | None, used: bool) -> dict:

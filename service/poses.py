@@ -32,6 +32,7 @@ from drivers.kinematics import (
     initial_view_poses,
 )
 from solver.anatomy import Landmarks, plane_normal_from_angles
+from solver.block import block_axes, bone_entry_mm, pin_pose
 from solver.geometry import Pose, look_at
 from solver.plan import Plan
 
@@ -109,8 +110,7 @@ class ViewGeometry:
         self.kinematics, self.setup_config, self.link = kinematics, dict(setup), link
         self.max_reading_age_s, self.angle_check_deg = max_reading_age_s, angle_check_deg
         # The set-up's orientation and isocentre do not depend on the plan: any landmarks do.
-        self._nominal_setup = self.setup(Landmarks(np.zeros(3), np.array([0.0, 0.0, -370.0]),
-                                                   np.array([0.0, 1.0, 0.0]), "right"))
+        self._nominal_setup = self.setup(Landmarks.nominal())
 
     def setup(self, landmarks: Landmarks) -> PatientSetup:
         return PatientSetup.from_config(landmarks, self.setup_config)
@@ -174,25 +174,16 @@ def planned_pins(plan: Plan) -> tuple[Pose, Pose]:
     T_tibia_anat = lm.T_tibia_anat()
     normal = plane_normal_from_angles(np.radians(plan.target.ctr_deg),
                                       np.radians(plan.target.str_deg), lm.medial_sign)
-    posterior = np.array([0.0, -1.0, 0.0])
-    posterior -= np.dot(posterior, normal) * normal
-    posterior /= np.linalg.norm(posterior)
-    across = np.cross(normal, posterior)
-    across *= np.sign(across[0])
+    posterior, across = block_axes(normal)
     centre = np.array([0.0, 0.0, -PLANNED_DEPTH_BELOW_PLATEAU_MM])
     centre = centre + across * lm.medial_sign * PLANNED_MEDIAL_OFFSET_MM
     sdf = plan.bone_model().sdf
-    t = np.arange(0.0, 300.0, 1.0)
     pins = []
     for offset in (-PLANNED_PIN_SPACING_MM / 2, PLANNED_PIN_SPACING_MM / 2):
         start = centre + across * offset - posterior * 150.0  # well anterior of the bone
-        line = start + t[:, None] * posterior
-        inside = np.nonzero(sdf.query(T_tibia_anat.apply(line))[0] < 0)[0]
-        entry = t[inside[0]] if len(inside) else 150.0  # through the centre if the line misses
+        entry = bone_entry_mm(sdf, T_tibia_anat, start, posterior, 1.0)
+        if entry is None:
+            entry = 150.0  # through the block's centre line, where the bone should have been
         tip = start + (entry + PLANNED_DRILL_DEPTH_MM) * posterior
-        z_axis = -posterior
-        x_axis = np.cross([0.0, 0.0, 1.0], z_axis)
-        x_axis /= np.linalg.norm(x_axis)
-        pins.append(T_tibia_anat @ Pose(np.column_stack([x_axis, np.cross(z_axis, x_axis), z_axis]),
-                                        tip))
+        pins.append(pin_pose(T_tibia_anat, tip, posterior))
     return pins[0], pins[1]

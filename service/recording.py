@@ -41,8 +41,8 @@ from .frames import Frame
 __all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
 
 APPLICATION_ID = "slamtka"
-STAGES = ("frames", "calibration", "contours", "initial_poses", "solve", "plane_and_angles",
-          "results")
+STAGES = ("frames", "calibration", "initial_poses", "contours", "solve", "plane_and_angles",
+          "results")  # in the pipeline's order
 _JSON_MEDIA = "application/json"
 _LABEL_COLOURS = {"bone": (255, 220, 0), "pin1": (0, 230, 255), "pin2": (255, 60, 255)}
 
@@ -142,8 +142,7 @@ class CaseRecorder:
         """The solver callback: costs and every pose after each step."""
         self._iteration += 1
         self.rec.set_time("solver_iteration", sequence=self._iteration)
-        self.rec.log("solver/stage", rr.TextLog(f"{stage}: iteration {info.iteration}, "
-                                                f"{'accepted' if info.accepted else 'rejected'}"))
+        self.rec.log("solver/stage", rr.TextLog(f"{stage}: iteration {info.iteration}"))
         self.rec.log("solver/cost", rr.Scalars(info.cost))
         self.rec.log("solver/lambda", rr.Scalars(info.lambda_))
         for term, cost in info.term_costs.items():

@@ -56,13 +56,15 @@ def _refused_base(case_id: str, plan: Plan | None, reason: str) -> dict:
 
 
 def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
-                 outcome: SolveOutcome | None, plan: Plan | None, views: list[ViewObservation],
-                 calibration: dict | None, initial: InitialGuess | None, reasons: list[str],
-                 timings: dict[str, float], outputs: dict) -> dict:
+                 outcome: SolveOutcome | None, method: str, plan: Plan | None,
+                 views: list[ViewObservation], calibration: dict | None,
+                 initial: InitialGuess | None, reasons: list[str], timings: dict[str, float],
+                 outputs: dict) -> dict:
     """The validated result document of one pipeline run.
 
     ``reasons`` are the pipeline's own findings (views left out, a refusal before the solve);
-    the solver's refusal reason is appended to them.
+    the solver's refusal reason is appended to them. ``method`` is the one the solver was
+    configured with (``SolveOutcome`` does not say).
     """
     reasons = list(reasons)
     if outcome is None:
@@ -72,7 +74,7 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
     else:
         if plan is None or calibration is None:
             raise ValueError("a solved run needs its plan and calibration")
-        doc = result_document(case_id, outcome, plan, views, calibration["id"], "slam")
+        doc = result_document(case_id, outcome, plan, views, calibration["id"], method)
         if outcome.status != "measured":
             reasons.append(outcome.reason)
     measured = doc["status"] == "measured"

@@ -62,6 +62,13 @@ class Landmarks:
         if np.linalg.norm(across) < 0.5 * np.linalg.norm(self.anterior):
             raise ValueError("the anterior direction is nearly parallel to the mechanical axis")
 
+    @staticmethod
+    def nominal() -> Landmarks:
+        """A plausible right tibia in its own anatomical frame (knee centre at the origin, the
+        ankle 370 mm below), for what must be set up before any plan is known."""
+        return Landmarks(np.zeros(3), np.array([0.0, 0.0, -370.0]), np.array([0.0, 1.0, 0.0]),
+                         "right")
+
     @property
     def medial_sign(self) -> float:
         """+1 if medial is +x of the anatomical frame (left leg), -1 if -x (right leg)."""

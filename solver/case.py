@@ -23,12 +23,11 @@ import numpy as np
 from .camera import Camera
 from .geometry import Pose
 from .imaging import calibration as imaging_calibration
-from .imaging.distortion import Distortion
 from .observations import LABELS, ViewObservation
 from .plan import Plan
 from .slam import InitialGuess
 
-__all__ = ["Case", "CASE_FORMAT", "load_case", "write_case", "calibration_document"]
+__all__ = ["Case", "CASE_FORMAT", "load_case", "write_case"]
 
 CASE_FORMAT = "slamtka-case/1"
 CONTOURS_FORMAT = "slamtka-contours/1"
@@ -51,12 +50,6 @@ def _read_json(path: Path) -> dict:
         return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
-
-
-def calibration_document(camera: Camera, calibration_id: str, description: str,
-                         distortion: Distortion | None = None) -> dict:
-    """The versioned calibration file of a case (see solver.imaging.calibration)."""
-    return imaging_calibration.calibration_document(camera, calibration_id, description, distortion)
 
 
 def _load_calibration(path: Path) -> tuple[Camera, str]:
@@ -91,7 +84,8 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
     if any(v.camera != camera for v in views):
         raise ValueError("all views of a case must come from one calibrated C-arm")
     (folder / "calibration.json").write_text(json.dumps(
-        calibration_document(camera, calibration_id, "C-arm intrinsics"), indent=2))
+        imaging_calibration.calibration_document(camera, calibration_id, "C-arm intrinsics"),
+        indent=2))
     contours = {"format": CONTOURS_FORMAT, "units": "px", "views": [
         {"view_id": v.view_id, **{label: np.round(v.contours[label], 3).tolist() for label in LABELS}}
         for v in views]}

@@ -1,8 +1,8 @@
 """Contour observations of one X-ray view and their distance maps.
 
-Each view carries the calibrated camera, the pixel positions (undistorted) of the observed
-outer edges of the bone (tibia with fibula) and of each pin, and the camera pose guess taken
-from the C-arm encoders. The model-projection term needs, for any pixel, the distance to the
+Each view carries the calibrated camera and the pixel positions (undistorted) of the observed
+outer edges of the bone (tibia with fibula) and of each pin; the pose guesses from the C-arm
+encoders travel separately (``solver.slam.InitialGuess``). The model-projection term needs, for any pixel, the distance to the
 nearest observed edge of a label: that is a distance transform of the rasterised contour,
 queried with bilinear interpolation and its exact gradient.
 """

@@ -120,13 +120,12 @@ class LMOptions:
 
 @dataclass
 class IterationInfo:
-    """What the optimiser reports after every accepted or rejected step."""
+    """What the optimiser reports after every accepted step."""
 
     iteration: int
     cost: float
     term_costs: dict[str, float]
-    lambda_: float
-    accepted: bool
+    lambda_: float  # the damping the next step starts from
     state: State
 
 
@@ -366,7 +365,7 @@ def levenberg_marquardt(
         history.append(cost)
         lam = max(lam / 10.0, options.min_lambda)
         settled = None if callback is None else callback(
-            IterationInfo(iteration, cost, dict(costs), lam, True, state))
+            IterationInfo(iteration, cost, dict(costs), lam, state))
         if settled:
             converged, reason = True, settled
             break

@@ -8,7 +8,9 @@ it is searched for exhaustively, with each view's image telling how well a hypot
 - the rotation about the knee centre (anatomical frame) runs over a grid of hypotheses; for
   each, the bone's outline (a decimated mesh) is projected into every view and slid over a
   truncated, reduced distance map of the observed contour for every image shift (one
-  template correlation per view), the best shift's mean distance being the view's score;
+  template correlation per view); at the best shift, the view's score is the mean distance
+  of the best-placed 70% of the outline (its interior folds are never observed) plus the
+  mean distance from the observed contour back to the outline (edges left unexplained);
 - a hypothesis turns the bone about the knee centre and then carries the knee to where
   the views see it, so the knee stays put whatever the rotation; the best hypotheses'
   shifts say where the knee centre is seen in each view, and its rays, triangulated, place
@@ -72,8 +74,8 @@ class _ViewField:
                                          cv2.BORDER_CONSTANT, value=self.truncate)
 
     def best_shift(self, uv: np.ndarray) -> tuple[float, np.ndarray]:
-        """Mean truncated distance (reduced pixels) at the best image shift, and that shift
-        in full-resolution pixels; an infinite score when the outline cannot be placed."""
+        """The view's score (reduced pixels) at the best image shift, and that shift in
+        full-resolution pixels; an infinite score when the outline cannot be placed."""
         d, reach = self.search.downscale, self.reach
         scaled = uv / d
         origin = np.floor(scaled.min(axis=0)).astype(int)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -124,8 +124,8 @@ class SolverConfig:
     # 1-5 the final errors did not change).
     coarse_thinning: float = 2.0
     # The bone's stages: each robust scale is a step of an annealing, not a solve to its end
-    # (10 iterations per scale: 11 more iterations per solve at the median of 150 phantom
-    # solves at levels 1-5, for the same final errors).
+    # (10 iterations per scale, as before, cost 11 more iterations per solve at the median
+    # of 150 phantom solves at levels 1-5, for the same final errors).
     coarse: LMOptions = LMOptions(max_iterations=5, relative_tolerance=1e-3)
     # The pins start triangulated from their contours: their own stage is a short polish
     # (longer only crawls; every silhouette is refined together next).
@@ -545,9 +545,7 @@ class _Schedule:
         # energy with edge points seated where their rays graze the models.
         state, _ = self.lm(p.silhouette_terms(LABELS, 1.0, tight, thinned=True) + self.odometry,
                            state, p.fixed_dofs(), c.coarse_all, "coarse all")
-        first = LMOptions(max_iterations=c.joint_seated_iterations,
-                          relative_tolerance=c.fine.relative_tolerance,
-                          min_lambda=c.fine.min_lambda)
+        first = replace(c.fine, max_iterations=c.joint_seated_iterations)
         options, name, seatings = first, "joint", 0
         while True:
             points, groups = p.seated_points(state.poses)
@@ -710,7 +708,7 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     cov, cov_segmentation = pose_covariance(cov_terms, state, fixed,
                                             _segmentation_error(problem, state, cov_terms))
     pin_slice = slice(6 * n, 6 * (n + 2))
-    dof = n_residuals - len(state.points) * 3 - fixed.size
+    dof = n_residuals - len(state.points) * 3 - int(np.count_nonzero(~fixed))
     variance_factor = max(1.0, fine.cost / max(dof, 1))
     angle_cov = angle_covariance(
         pins, (cov * variance_factor + cov_segmentation)[pin_slice, pin_slice],

@@ -16,8 +16,7 @@ def plans() -> dict[str, Plan]:
 
 
 def test_each_kind_spoils_what_it_says(plans):
-    clean = degenerate_case(plans, "outliers", 0).case
-    assert clean.truth_ctr_deg is not None
+    clean = degenerate_case(plans, "outliers", 0).case  # the simulation before it was spoiled
     missing = degenerate_case(plans, "pin-missing", 0)
     assert sum(len(v.contours[label]) == 0 for v in missing.views for label in ("pin1", "pin2")) == 1
     few = degenerate_case(plans, "too-few-points", 0)

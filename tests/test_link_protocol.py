@@ -42,8 +42,9 @@ def test_frame_layout_matches_the_protocol_page():
 
 def test_messages_round_trip():
     assert decode_identity(encode_identity(DEFAULT_IDENTITY)) == DEFAULT_IDENTITY
-    flags, mask, counts = decode_reading(encode_reading(5, 3, np.array([-7, 0, 2**31 - 1])), 3)
-    assert (flags, mask, counts.tolist()) == (5, 3, [-7, 0, 2**31 - 1])
+    values = [-7, 0, 2**31 - 1, -2**31, 1, 2]
+    flags, mask, counts = decode_reading(encode_reading(5, 3, np.array(values)), DEFAULT_IDENTITY)
+    assert (flags, mask, counts.tolist()) == (5, 3, values)
     assert decode_stream_start(encode_stream_start(250)) == 250
     result = encode_result(MessageType.STREAM_START, 99, ResultCode.RATE_OUT_OF_RANGE)
     assert decode_result(result) == (3, 99, 3)
@@ -58,7 +59,7 @@ def test_payload_errors_name_the_problem():
     with pytest.raises(ProtocolError, match="extra bytes"):
         decode_identity(raw + b"\x00")
     with pytest.raises(ProtocolError, match="28 expected for 6 axes"):
-        decode_reading(b"\x00" * 24, 6)
+        decode_reading(b"\x00" * 24, DEFAULT_IDENTITY)
     with pytest.raises(ProtocolError, match="exceeds 512"):
         encode_frame(Frame(MessageType.STATUS, 1, 1, b"\x00" * (MAX_PAYLOAD + 1)))
     with pytest.raises(ProtocolError, match="unit 'rad'"):
@@ -188,7 +189,7 @@ def test_protocol_page_examples_decode():
                                         MessageType.RESULT, MessageType.READING, MessageType.STATUS]
     assert decode_stream_start(frames[1].payload) == 100
     assert decode_result(frames[2].payload) == (MessageType.STREAM_START, 2, ResultCode.OK)
-    flags, _, counts = decode_reading(frames[3].payload, 6)
+    flags, _, counts = decode_reading(frames[3].payload, DEFAULT_IDENTITY)
     assert flags == 1 and counts.tolist() == [-30000, 0, 0, 200000, 100000, 1000000]
     assert frames[3].sequence == 42 and frames[3].device_time_us == 7_000_020_000
     assert decode_status(frames[4].payload) == Status(0, 0, 100, 0)

@@ -33,7 +33,7 @@ def _record(path, plan, result: dict) -> None:
     rec.stage("solve")
     poses = (plan.landmarks.T_tibia_anat(),) * 3
     for k, cost in enumerate((10.0, 4.0, 3.5)):
-        rec.iteration("joint", IterationInfo(k, cost, {"E_rp": cost / 2}, 1e-3, True,
+        rec.iteration("joint", IterationInfo(k, cost, {"E_rp": cost / 2}, 1e-3,
                                              State(poses, np.zeros((0, 3)))))
     rec.stage("results")
     rec.result(result)

@@ -58,7 +58,7 @@ def _document(plan, case, outcome) -> dict:
     return build_result(
         case_id="case-0123456789abcdef", run_id="0123456789abcdef",
         case={"patient_id": "P-1", "study_instance_uid": generate_uid(), "laterality": "R"},
-        sources=_sources(2), outcome=outcome, plan=plan, views=case.views,
+        sources=_sources(2), outcome=outcome, method="slam-noenc", plan=plan, views=case.views,
         calibration={"id": "carm-1", "sha256": "ab" * 32},
         initial=InitialGuess(tuple(case.initial.T_cam_tibia), tuple(case.initial.T_tibia_pin)),
         reasons=[], timings={"solve_s": 0.4, "total_s": 0.9},
@@ -83,13 +83,15 @@ def test_measured_document_validates_and_carries_the_measurement(truth_case):
     assert doc["verdict"] == expected
     assert "varus" in doc["sign_convention"]["CTR"]
     assert doc["calibration"]["sha256"] == "ab" * 32 and len(doc["sources"]) == 2
+    assert doc["solver"]["method"] == "slam-noenc"  # the configured method, not a default
     json.loads(json.dumps(doc))  # plain JSON all the way down
 
 
 def test_refused_document_validates_with_reasons_and_no_angles():
     doc = build_result(case_id="case-x", run_id="0123456789abcdef",
                        case={"patient_id": "P-2", "study_instance_uid": "1.2.3", "laterality": None},
-                       sources=_sources(2), outcome=None, plan=None, views=[], calibration=None,
+                       sources=_sources(2), outcome=None, method="slam", plan=None, views=[],
+                       calibration=None,
                        initial=None, reasons=["no plan for patient 'P-2'"],
                        timings={"total_s": 0.1},
                        outputs={"folder": "/o", "recording": "/o/r.rrd",

@@ -239,10 +239,11 @@ def test_a_callback_may_end_a_stage_as_converged(real_plan):
                                               optimizer.LMOptions(max_iterations=20), settled)
     assert report.converged and report.reason == "enough" and calls == [1, 2]
     case = simulate_case(real_plan, SimulationConfig(seed=2))
-    reasons = []
+    stages = []
     outcome = solve_joint(real_plan, case.views, case.initial,
-                          callback=lambda stage, info: reasons.append(stage))
+                          callback=lambda stage, info: stages.append(stage))
     assert outcome.status == "measured" and "resection angles settled" in outcome.convergence_reason
+    assert stages[-1].startswith("joint") and len(stages) == outcome.iterations
 
 
 def test_seating_finds_the_least_distance_along_each_ray(real_plan):
@@ -306,18 +307,17 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
 
 @pytest.mark.parametrize("method", [m for m in METHODS if m != "slam"])
 def test_every_baseline_answers_with_its_own_energy(real_plan, method):
-    """Each baseline either measures or refuses with a reason; its final energy is the
-    one the method is named for (and E_odo belongs to the proposed method alone)."""
+    """Each baseline measures this case, near the truth (the split back-projection leaves
+    STR 1.2 deg off here); its final energy is the one the method is named for (and E_odo
+    belongs to the proposed method alone)."""
     case = simulate_case(real_plan, SimulationConfig(seed=6))
     outcome = solve_joint(real_plan, case.views, case.initial, SolverConfig(method=method))
-    assert outcome.status in ("measured", "not_measured")
-    assert outcome.status == "measured" or outcome.reason
+    assert outcome.status == "measured", outcome.reason
     family = "slam-noenc" if method == "slam-noenc" else method.split("-")[0]
     expected = {"projection": {"E_mp"}, "backprojection": {"E_rp", "E_bp"},
                 "slam-noenc": {"E_rp", "E_bp", "E_mp"}}[family]
     assert set(outcome.term_costs) == expected
-    if outcome.status == "measured":
-        assert max(_errors(case, outcome)) < 5.0
+    assert max(_errors(case, outcome)) < 2.0
 
 
 def test_an_unknown_method_is_refused_by_name():

@@ -297,8 +297,10 @@ class CalibrationImage:
     sid_mm: float | None = None
 
 
-def _project(params: np.ndarray, plate: np.ndarray, views: list[np.ndarray], aspect: float,
-             base: Distortion, width: int, height: int) -> list[np.ndarray]:
+def _project(params: np.ndarray, views: list[np.ndarray], aspect: float,
+             base: Distortion) -> list[np.ndarray]:
+    """Pixels of each view's plate points (``views``, plate frame) under the calibration
+    ``params``: focal length, principal point, distortion, then each view's plate pose."""
     f, cx, cy = params[:3]
     distortion = base.with_params(params[3:7])
     out = []
@@ -330,7 +332,6 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     spacing = next(iter(spacings)) if spacings else None
     height, width = next(iter(shapes))
     aspect = 1.0 if spacing is None else spacing[1] / spacing[0]  # fy / fx = col / row spacing
-    plate = spec.points()
 
     used, rejected, fields = [], [], []
     for im in images:
@@ -381,7 +382,7 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
         views = [p for _, p, _ in used]
 
         def residuals(x: np.ndarray) -> np.ndarray:
-            return (np.concatenate(_project(x, plate, views, aspect, base, width, height)) - observed).ravel()
+            return (np.concatenate(_project(x, views, aspect, base)) - observed).ravel()
 
         x0 = np.concatenate([[K1[0, 0], centre[0], centre[1], 0.0, 0.0, 0.0, 0.0], *poses])
         lower = np.full(len(x0), -np.inf)
@@ -390,7 +391,7 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
         upper[:7] = [5.0 * x0[0], centre[0] + off, centre[1] + off, 0.5, 0.5, 0.2, 0.2]
         solution = least_squares(residuals, x0, bounds=(lower, upper), x_scale="jac", method="trf")
         errors = [np.sqrt(np.mean(np.sum((p - o) ** 2, axis=1))) for p, (_, _, o) in
-                  zip(_project(solution.x, plate, views, aspect, base, width, height), used)]
+                  zip(_project(solution.x, views, aspect, base), used)]
         worst = max(0.5, 5.0 * float(np.median(errors)))
         bad = [k for k, e in enumerate(errors) if e > worst]
         if not bad or len(used) - len(bad) < options.min_images:
@@ -426,7 +427,7 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     if nominal is not None and abs(f / nominal - 1.0) > options.max_focal_deviation:
         raise CalibrationError(f"estimated focal length {f:.0f} px is {100 * (f / nominal - 1):+.0f}% from "
                                f"the nominal SID / pixel spacing {nominal:.0f} px: implausible")
-    projected = _project(x, plate, views, aspect, base, width, height)
+    projected = _project(x, views, aspect, base)
     per_image = [{"image": im.name, "balls": len(o),
                   "rms_px": float(np.sqrt(np.mean(np.sum((p - o) ** 2, axis=1)))), "tilt_deg": float(t)}
                  for (im, _, o), p, t in zip(used, projected, tilts)]

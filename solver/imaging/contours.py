@@ -1,6 +1,6 @@
 """Automatic contour extraction: outer edges of tibia with fibula, and the edges of each pin.
 
-Pipeline (all tuning in :class:`ContourConfig`, loadable from TOML or JSON):
+Pipeline (all tuning in :class:`ContourConfig`):
 
 1. Field of view and polarity. The circle of an image intensifier is found from the
    no-signal level in the frame's corners (a robust circle fit to the field's boundary);
@@ -33,8 +33,7 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -54,7 +53,7 @@ class ContourError(FieldError):
 
 @dataclass(frozen=True)
 class ContourConfig:
-    """Site tuning of contour extraction (attenuation in natural-log units, lengths in px)."""
+    """Tuning of contour extraction (attenuation in natural-log units, lengths in px)."""
 
     polarity: str = "auto"  # "auto", "dark" (bone and metal dark) or "bright"
     fov_margin_px: float = 8.0  # edges this close to the field's rim are dropped
@@ -91,22 +90,6 @@ class ContourConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.bone_reach_in_px < 0:
             raise ValueError(f"bone_reach_in_px must not be negative, got {self.bone_reach_in_px}")
-
-    @staticmethod
-    def load(path: str | Path) -> ContourConfig:
-        """Read a ``.toml`` or ``.json`` file (a ``[contours]`` table or top-level keys)."""
-        path = Path(path)
-        try:
-            text = path.read_text()
-            doc = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{path}: cannot read contour configuration ({exc})") from None
-        doc = doc.get("contours", doc)
-        known = {f.name: f.type for f in fields(ContourConfig)}
-        unknown = sorted(set(doc) - set(known))
-        if unknown:
-            raise ValueError(f"{path}: unknown contour settings {unknown}")
-        return ContourConfig(**doc)
 
 
 @dataclass

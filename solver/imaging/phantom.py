@@ -18,7 +18,7 @@ from ..geometry import Pose, rotation_about
 from .distortion import Distortion
 from .xray import Body, XRayParams, expose, render_bodies
 
-__all__ = ["PhantomSpec", "PhantomImage", "simulate_phantom_images"]
+__all__ = ["PhantomSpec", "simulate_phantom_images"]
 
 _MU_STEEL = 0.9  # per mm, as XRayParams
 _MU_ACRYLIC = 0.022
@@ -54,14 +54,6 @@ class PhantomSpec:
                 "pitch_mm": self.pitch_mm, "ball_diameter_mm": self.ball_diameter_mm}
 
 
-@dataclass
-class PhantomImage:
-    image: np.ndarray  # (H, W) uint16
-    T_cam_plate: Pose
-    inverted: bool
-    occluded: bool
-
-
 def _bodies(spec: PhantomSpec, clamp: bool) -> list[Body]:
     ball = trimesh.creation.icosphere(subdivisions=2, radius=spec.ball_diameter_mm / 2.0)
     balls = trimesh.util.concatenate([ball.copy().apply_translation(p) for p in spec.points()])
@@ -79,8 +71,9 @@ def _bodies(spec: PhantomSpec, clamp: bool) -> list[Body]:
 def simulate_phantom_images(camera: Camera, distortion: Distortion, spec: PhantomSpec, count: int,
                             rng: np.random.Generator, max_tilt_deg: float = 40.0,
                             inverted_fraction: float = 0.25, clamp_fraction: float = 0.2,
-                            params: XRayParams = XRayParams()) -> list[PhantomImage]:
-    """``count`` phantom frames at random tilts (up to ``max_tilt_deg``) and positions."""
+                            params: XRayParams = XRayParams()) -> list[np.ndarray]:
+    """``count`` phantom frames (uint16) at random tilts (up to ``max_tilt_deg``) and
+    positions, some inverted and some with a steel clamp across the grid."""
     images = []
     bodies = {clamp: _bodies(spec, clamp) for clamp in (False, True)}
     for _ in range(count):
@@ -89,14 +82,13 @@ def simulate_phantom_images(camera: Camera, distortion: Distortion, spec: Phanto
             rotation_about([0.0, 0.0, 1.0], rng.uniform(-np.pi, np.pi))
         # Spread over the field so that balls also reach its rim, where distortion is largest.
         t = np.array([rng.normal(0.0, 20.0), rng.normal(0.0, 20.0), rng.uniform(560.0, 760.0)])
-        T_cam_plate = Pose(R, t)
         clamp = bool(rng.random() < clamp_fraction)
         inverted = bool(rng.random() < inverted_fraction)
-        line_integral = render_bodies([(b, T_cam_plate) for b in bodies[clamp]], camera,
+        line_integral = render_bodies([(b, Pose(R, t)) for b in bodies[clamp]], camera,
                                       np.zeros(2), camera.width, camera.height)
         # The grid sits well inside the frame: the ideal canvas is the frame itself, and the
         # pincushion only pulls content inwards.
         image = expose(line_integral, np.zeros(2), camera,
                        replace(params, invert=inverted), distortion, rng)
-        images.append(PhantomImage(image, T_cam_plate, inverted, clamp))
+        images.append(image)
     return images

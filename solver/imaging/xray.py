@@ -206,8 +206,6 @@ class Radiograph:
     camera: Camera
     distortion: Distortion
     silhouettes: dict[str, np.ndarray] = field(default_factory=dict)  # distorted pixels
-    silhouettes_ideal: dict[str, np.ndarray] = field(default_factory=dict)  # pinhole pixels
-    line_integral: np.ndarray | None = None  # ideal-canvas attenuation, for diagnostics
 
 
 def render_bodies(bodies: list[tuple[Body, Pose]], camera: Camera, origin: np.ndarray,
@@ -298,7 +296,7 @@ def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | 
     outlines = {"bone": (scene.bone_outline, T_cam_tibia)}
     outlines.update({f"pin{i + 1}": (scene.pin_outline, T_cam_tibia @ T)
                      for i, T in enumerate(T_tibia_pins)})
-    ideal, distorted = {}, {}
+    distorted = {}
     for label, (generator, T) in outlines.items():
         if label == "bone":
             points = generator.outline_points(T, camera, _TRUTH_SPACING_PX,
@@ -308,7 +306,6 @@ def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | 
             # test that drops a bone's interior folds is too coarse for a 20 px wide shaft.)
             points = generator.outline_points(T, camera, _TRUTH_SPACING_PX, outer_only=False)
         uv = camera.project(T.apply(points))
-        ideal[label] = uv
         observed = distortion.distort(uv) if len(uv) else uv
         distorted[label] = observed[camera.in_field(observed, 2.0)] if len(uv) else uv
-    return Radiograph(image, params.bits_stored, camera, distortion, distorted, ideal, line_integral)
+    return Radiograph(image, params.bits_stored, camera, distortion, distorted)
