@@ -4,8 +4,8 @@ Each run simulates a fresh case (2 px contour noise by default, initial-state no
 chosen level: rotation SD 0.1 rad x level, translation SD 20 mm x level), solves it and
 records the absolute CTR/STR errors against the simulated truth, the reported 1-sigma, the
 time and the iterations. ``--segmentation-mm`` adds a smooth CT segmentation error to the
-bone the X-rays see (the plan keeps its mesh), beyond the paper's protocol: the solver's
-0.5 mm bone tolerance stands for it. Runs are spread over worker processes. Writes ``results.json``,
+bone the X-rays see (the plan keeps its mesh), beyond the paper's protocol; the plan states
+the same SD, which the solver carries as an error shared by nearby edge points. Runs are spread over worker processes. Writes ``results.json``,
 ``results.md`` (table) and ``errors.png`` (box plots) and prints the table.
 """
 

@@ -1,8 +1,10 @@
 """The ``slamtka`` command line.
 
-Sub-commands: ``simulate`` (write a simulated case folder), ``solve`` (measure a case
-folder), ``demo`` (simulate and solve the built-in phantom), ``bench accuracy`` (the
-accuracy study over many simulated cases, printing a table).
+Its own sub-commands: ``simulate`` (write a simulated case folder), ``solve`` (measure a case
+folder), ``demo`` (simulate and solve the built-in phantom). The others are registered by the
+modules that implement them: ``bench`` (accuracy, link, service, speed, degenerate, imaging,
+hardening), ``calibrate``, ``carm-sim``, ``plan``, ``status``, ``replay``, ``serve`` and
+``theatre``; ``slamtka --help`` lists them.
 """
 
 from __future__ import annotations

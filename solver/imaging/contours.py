@@ -15,8 +15,11 @@ Pipeline (all tuning in :class:`ContourConfig`):
    least squares, so that it hugs the tissue under the bone) above ``bone_threshold``; the
    boundary of that mask, with its holes, is the coarse outer outline of tibia with fibula.
 5. Sub-pixel edges: along each boundary point's outward normal, the position where ``A``
-   falls fastest (smoothed derivative, parabolic peak) within ``edge_search_px``, kept when
-   strong enough and away from the field's rim, the skin line and the pins' shadows.
+   falls fastest (smoothed derivative, parabolic peak) within ``edge_search_px`` (for the
+   bone, ``bone_reach_in_px`` further inwards), kept when strong enough and away from the
+   field's rim, the skin line and the pins' shadows. A bone edge is then placed at the mean
+   of two estimates of the outline under the image's own blur: the steepest fall moved
+   out, and the sharpest bend moved in.
 
 Pin labels (rule): the two pins are ordered along their common axis direction, oriented
 towards +u (image right): with ``pin_order = "left_to_right"`` pin 1 is the pin whose shadow
