@@ -32,7 +32,7 @@ from typing import Callable, Mapping
 import numpy as np
 import serial
 
-from .kinematics import AXIS_UNITS, JOINT_FIELD, JointReading
+from .kinematics import AXIS_UNITS, JOINT_FIELD, JointReading, config_number
 from .protocol import (
     INVALID_FLAGS, PROTOCOL_VERSION, DeviceIdentity, Frame, FrameParser, MessageType, ParserStats,
     ProtocolError, ResultCode, Status, StatusFlags, decode_identity, decode_reading, decode_result,
@@ -169,12 +169,14 @@ class LinkConfig:
         kwargs = {}
         for key, value in d.items():
             default = getattr(LinkConfig, key)
-            try:
-                kwargs[key] = (tuple(str(v) for v in value) if isinstance(default, tuple)
-                               else type(default)(value))
-            except (TypeError, ValueError):
-                raise ValueError(f"encoder link configuration: {key} = {value!r} is not of type "
-                                 f"{type(default).__name__}") from None
+            if not isinstance(default, tuple):
+                kwargs[key] = config_number(value, f"encoder link configuration: {key}",
+                                            integer=isinstance(default, int))
+            elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+                kwargs[key] = tuple(value)
+            else:
+                raise ValueError(f"encoder link configuration: {key} must be a list of names, "
+                                 f"got {value!r}")
         return LinkConfig(**kwargs)
 
     def to_config(self) -> dict:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import math
+import numbers
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from solver.geometry import Pose, rotation_about, so3_log
 
 __all__ = [
     "AXIS_UNITS", "JointReading", "ChainJoint", "CArmKinematics", "PatientSetup", "RelativePose",
-    "initial_view_poses", "dicom_angles", "AngleCheck", "check_dicom_angles",
+    "initial_view_poses", "dicom_angles", "AngleCheck", "check_dicom_angles", "config_number",
 ]
 
 # The axes a C-arm reports and their units; "sid" is optional (many C-arms have a fixed SID).
@@ -109,6 +110,19 @@ def _limits(value: Sequence[float], what: str) -> tuple[float, float]:
     if not lo < hi:
         raise ValueError(f"{what} [{lo}, {hi}] is empty")
     return lo, hi
+
+
+def config_number(value, what: str, integer: bool = False) -> float | int:
+    """A number from a configuration table. A bool, a string or a fraction for a count is
+    refused rather than coerced (``true`` would become 1, ``100.7`` Hz would become 100)."""
+    kind = "int (must be a whole number)" if integer else "float (must be a number)"
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{what} = {value!r} is not of type {kind}")
+    if not math.isfinite(value):
+        raise ValueError(f"{what} = {value!r} is not finite")
+    if integer and value != int(value):
+        raise ValueError(f"{what} = {value!r} is not of type {kind}")
+    return int(value) if integer else float(value)
 
 
 def _check_keys(d: Mapping, allowed: set[str], what: str) -> None:
@@ -261,12 +275,13 @@ class CArmKinematics:
         _check_keys(d, {"name", "source_to_isocentre_mm", "sid_nominal_mm", "sid_limits_mm",
                         "sid_sd_mm", "detector_roll_deg", "chain"}, "C-arm kinematics")
         kwargs = {k: v for k, v in d.items() if k != "chain"}
+        if not isinstance(kwargs.get("name", ""), str):
+            raise ValueError(f"C-arm kinematics: name must be a string, got {kwargs['name']!r}")
         for key in kwargs.keys() - {"name", "sid_limits_mm"}:
-            try:
-                kwargs[key] = float(kwargs[key])
-            except (TypeError, ValueError):
-                raise ValueError(f"C-arm kinematics: {key} must be a number, got {d[key]!r}") from None
+            kwargs[key] = config_number(kwargs[key], f"C-arm kinematics: {key}")
         if "chain" in d:
+            if not isinstance(d["chain"], (list, tuple)):
+                raise ValueError(f"C-arm kinematics: chain must be a list of joints, got {d['chain']!r}")
             kwargs["chain"] = tuple(ChainJoint.from_config(j) for j in d["chain"])
         return CArmKinematics(**kwargs)
 
@@ -301,6 +316,13 @@ class PatientSetup:
         object.__setattr__(self, "anterior_carm", tuple(a))
         object.__setattr__(self, "isocentre_in_anat_mm",
                            tuple(_vector(self.isocentre_in_anat_mm, "isocentre_in_anat_mm")))
+        for name in ("rot_sd_deg", "trans_sd_mm"):
+            if config_number(getattr(self, name), name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        reference = config_number(self.reference_view, "reference_view", integer=True)
+        if reference < 0:
+            raise ValueError(f"reference_view must be a view index (0, 1, ...), got {reference}")
+        object.__setattr__(self, "reference_view", reference)
 
     @staticmethod
     def from_config(landmarks: Landmarks, d: Mapping) -> PatientSetup:

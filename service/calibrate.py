@@ -18,7 +18,7 @@ from pydicom.errors import InvalidDicomError
 from solver.imaging.calibration import CalibrationError, CalibrationImage, CalibrationOptions, calibrate
 from solver.imaging.phantom import PhantomSpec
 
-from .frames import FrameError, decode_frame
+from .frames import decode_frame
 
 __all__ = ["add_calibrate_parser", "cmd_calibrate"]
 
@@ -36,7 +36,7 @@ def _read(path: Path) -> CalibrationImage:
         frame = decode_frame(pydicom.dcmread(path))
     except (InvalidDicomError, OSError) as exc:
         raise ValueError(f"{path}: not a readable DICOM file ({exc})") from None
-    except FrameError as exc:
+    except ValueError as exc:  # a FrameError, or a frame the decoded values cannot make
         raise ValueError(f"{path}: {exc}") from None
     return CalibrationImage(path.name, frame.pixels, frame.imager_pixel_spacing_mm, frame.sid_mm)
 

@@ -180,9 +180,16 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (ValueError, RuntimeError) as exc:
-        print(f"slamtka: error: {exc}", file=sys.stderr)
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"slamtka: error: {_describe_error(exc)}", file=sys.stderr)
         return 2
+
+
+def _describe_error(exc: Exception) -> str:
+    """The message for a refused command: an OSError's own message may not name its file."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror or exc}"
+    return str(exc)
 
 
 if __name__ == "__main__":

@@ -98,6 +98,11 @@ class DicomConfig:
         if self.health_ae_title in self.allowed_calling_ae_titles:
             raise ConfigError(f"{where}.health_ae_title: must differ from the sending C-arms' "
                               "AE titles (it may not store)")
+        try:
+            ipaddress.ip_address(self.bind_address)
+        except ValueError:
+            raise ConfigError(f"{where}.bind_address: {self.bind_address!r} is not an IP address "
+                              "(e.g. 0.0.0.0 for all interfaces)") from None
         _check_range(f"{where}.port", self.port, 0, 65535)  # 0: any free port (tests)
         _check_range(f"{where}.max_pdu_bytes", self.max_pdu_bytes, 4096, 16 * 1024 * 1024)
         _check_range(f"{where}.max_message_bytes", self.max_message_bytes, 1024 * 1024, 1 << 30)
@@ -178,9 +183,12 @@ class CarmConfig:
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}.{key}: {exc}") from None
         try:
-            PatientSetup.from_config(Landmarks.nominal(), self.setup)
+            setup = PatientSetup.from_config(Landmarks.nominal(), self.setup)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"{where}.setup: {exc}") from None
+        if setup.reference_view > 1:  # a case is measured as soon as it has two views
+            raise ConfigError(f"{where}.setup: reference_view {setup.reference_view} must be 0 or 1 "
+                              "(a run may have only two views)")
         link = LinkConfig.from_config(self.link)
         _check_range(f"{where}.max_reading_age_s", self.max_reading_age_s, 0.001, link.max_age_s)
 
@@ -397,6 +405,8 @@ def load_config(path: Path, environ: Mapping[str, str] | None = None) -> Service
         raise ConfigError(f"{path}: configuration file not found")
     try:
         table = tomllib.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text (UTF-8) file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     config = config_from_dict(table, path.parent.resolve(), environ)

@@ -16,6 +16,8 @@ Times are UTC-aware; an instance without a timezone offset is read as UTC.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 
@@ -197,11 +199,40 @@ def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: s
     return ds
 
 
+_PYDICOM_DECODERS = logging.getLogger("pydicom.pixels.decoders.base")
+
+
+@contextlib.contextmanager
+def _quiet(logger: logging.Logger):
+    """Silence ``logger`` for the duration (restoring its previous state)."""
+    disabled, logger.disabled = logger.disabled, True
+    try:
+        yield
+    finally:
+        logger.disabled = disabled
+
+
 def _required(ds: Dataset, keyword: str):
     value = ds.get(keyword)
     if value is None or value == "":
         raise FrameError(f"{keyword} is missing")
     return value
+
+
+def _integer(ds: Dataset, keyword: str, default: int | None = None) -> int:
+    """An integer attribute (required unless it has a default); junk names the attribute."""
+    try:
+        value = ds.get(keyword)  # a received value is converted on access, and may fail there
+    except (TypeError, ValueError) as exc:
+        raise FrameError(f"{keyword} cannot be read ({exc})") from None
+    if value is None or value == "":
+        if default is None:
+            raise FrameError(f"{keyword} is missing")
+        return default
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise FrameError(f"{keyword} {str(value)!r} is not an integer") from None
 
 
 def _optional_float(ds: Dataset, keyword: str, low: float, high: float) -> float | None:
@@ -221,7 +252,10 @@ def _utc_offset(text: str, keyword: str) -> timezone:
     """A ``+HHMM``/``-HHMM`` offset from UTC."""
     if len(text) != 5 or text[0] not in "+-" or not text[1:].isdigit():
         raise FrameError(f"{keyword} offset {text!r} is not of the form +HHMM")
-    minutes = int(text[1:3]) * 60 + int(text[3:5])
+    hours, minutes = int(text[1:3]), int(text[3:5])
+    if hours > 14 or minutes > 59:  # DICOM's offsets run from -1200 to +1400
+        raise FrameError(f"{keyword} offset {text!r} is not a valid offset from UTC")
+    minutes += hours * 60
     return timezone((-1 if text[0] == "-" else 1) * timedelta(minutes=minutes))
 
 
@@ -269,7 +303,7 @@ def _pixel_spacing(ds: Dataset) -> tuple[float, float]:
 
 def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     """The pixel matrix as MONOCHROME2 uint16 and its bits stored."""
-    if int(_required(ds, "SamplesPerPixel")) != 1:
+    if _integer(ds, "SamplesPerPixel") != 1:
         raise FrameError(f"SamplesPerPixel {ds.SamplesPerPixel} is not 1 (not a grey-scale X-ray)")
     photometric = str(_required(ds, "PhotometricInterpretation"))
     if photometric not in ("MONOCHROME1", "MONOCHROME2"):
@@ -280,22 +314,28 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
         raise FrameError(f"NumberOfFrames {ds.NumberOfFrames!r} is not a number") from None
     if frames < 1 or (frames > 1 and ds.SOPClassUID != ENHANCED_XA_IMAGE_STORAGE):
         raise FrameError(f"NumberOfFrames is {ds.NumberOfFrames}: send single-frame images")
-    if int(_required(ds, "PixelRepresentation")) != 0:
+    if _integer(ds, "PixelRepresentation") != 0:
         raise FrameError("PixelRepresentation is signed; X-ray frames must be unsigned")
-    bits_allocated = int(_required(ds, "BitsAllocated"))
-    bits_stored = int(_required(ds, "BitsStored"))
+    bits_allocated = _integer(ds, "BitsAllocated")
+    bits_stored = _integer(ds, "BitsStored")
     if bits_allocated not in (8, 16) or not 1 <= bits_stored <= bits_allocated:
         raise FrameError(f"BitsAllocated {bits_allocated} / BitsStored {bits_stored} not supported")
-    rows, columns = int(_required(ds, "Rows")), int(_required(ds, "Columns"))
+    rows, columns = _integer(ds, "Rows"), _integer(ds, "Columns")
+    if rows < 2 or columns < 2:
+        raise FrameError(f"Rows/Columns {rows}/{columns}: an image needs at least 2x2 pixels")
     if "PixelData" not in ds:
         raise FrameError("PixelData is missing")
+    if not ds.PixelData:
+        raise FrameError("PixelData is empty")
     syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", ExplicitVRLittleEndian)
     expected = frames * rows * columns * bits_allocated // 8
     if not syntax.is_compressed and len(ds.PixelData) not in (expected, expected + 1):
         raise FrameError(f"PixelData holds {len(ds.PixelData)} bytes, NumberOfFrames x Rows x "
                          f"Columns x BitsAllocated need {expected}")
     try:
-        array = ds.pixel_array if frames == 1 else ds.pixel_array[0]
+        # pydicom logs each failed decoder's traceback; the FrameError below already says it.
+        with _quiet(_PYDICOM_DECODERS):
+            array = ds.pixel_array if frames == 1 else ds.pixel_array[0]
     except Exception as exc:  # pydicom raises many types for bad or undecodable pixel data
         raise FrameError(f"PixelData cannot be decoded (transfer syntax {syntax}): {exc}") from None
     if array.shape != (rows, columns):
@@ -365,5 +405,5 @@ def decode_frame(ds: Dataset) -> Frame:
         laterality=laterality,
         modality=modality,
         bits_stored=max(8, bits_stored),
-        instance_number=int(attrs.get("InstanceNumber", 1) or 1),
+        instance_number=_integer(attrs, "InstanceNumber", 1) or 1,
     )

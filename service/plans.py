@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import logging
 import re
 import shutil
 import uuid
@@ -35,12 +36,15 @@ import numpy as np
 import trimesh
 
 from solver.anatomy import Landmarks
+from solver.jsonfile import read_json_object
 from solver.meshes import load_mesh
 from solver.pin import PinSpec, build_pin
-from solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target
+from solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target, check_layout
 
 __all__ = ["PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
            "LATERALITY_TO_SIDE"]
+
+log = logging.getLogger("slamtka.plans")
 
 LATERALITY_TO_SIDE = {"L": "left", "R": "right"}
 _FULL_LENGTH_MM = (250.0, 500.0)
@@ -58,6 +62,20 @@ class PlanSummary:
     target: dict
     landmarks: str  # "given" or "estimated"
     imported: str
+    # Why the folder cannot be read (file and problem); the other fields are then unknown.
+    error: str | None = None
+
+
+def _read_summary(folder: Path) -> PlanSummary:
+    """What ``plan list`` and the lookup need of one plan folder; ValueError naming the file."""
+    doc = read_json_object(folder / "plan.json")
+    provenance_path = folder / "provenance.json"
+    prov = read_json_object(provenance_path) if provenance_path.is_file() else {}
+    target = doc.get("target", {})
+    if not isinstance(target, dict):
+        raise ValueError(f"{folder / 'plan.json'}: target is not a JSON object")
+    return PlanSummary(folder, str(doc.get("patient_id")), str(doc.get("side")), target,
+                       str(prov.get("landmarks", "given")), str(prov.get("imported", "")))
 
 
 def _frame_coords(points: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -66,6 +84,15 @@ def _frame_coords(points: np.ndarray, origin: np.ndarray, axes: np.ndarray) -> n
 
 def _bbox_centre(coords: np.ndarray) -> np.ndarray:
     return 0.5 * (coords.min(axis=0) + coords.max(axis=0))
+
+
+def _surface_in(slab: np.ndarray, where: str) -> np.ndarray:
+    """``slab`` (a face mask), refused when it holds too few faces to measure: a mesh that is
+    not a tibia (a box, say) has nothing there, and the estimate would divide by zero."""
+    if np.count_nonzero(slab) < 3:
+        raise ValueError(f"the mesh has no surface {where}: it does not look like a tibia, "
+                         "so landmarks cannot be estimated; give --landmarks")
+    return slab
 
 
 def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
@@ -93,7 +120,8 @@ def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
                                                                     axis=0).max():
         axis, s = -axis, -s  # the wider end (the plateau) is proximal
     top, bottom = float(s.max()), float(s.min())
-    plateau = (s < top - _PLATEAU_SLAB_MM[0]) & (s > top - _PLATEAU_SLAB_MM[1])
+    plateau = _surface_in((s < top - _PLATEAU_SLAB_MM[0]) & (s > top - _PLATEAU_SLAB_MM[1]),
+                          "where the tibial plateau should be")
     ml = np.linalg.eigh(np.cov(across(plateau).T, aweights=areas[plateau]))[1][:, -1]
     ml -= np.dot(ml, axis) * axis
     ml /= np.linalg.norm(ml)
@@ -106,7 +134,8 @@ def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
         lateral_tip = f_points[np.argmin((f_points - centre) @ axis)]
         ankle = 0.5 * (points[np.argmin(s)] + lateral_tip)  # midpoint of the malleoli
     else:
-        distal = (s > bottom + _DISTAL_SLAB_MM[0]) & (s < bottom + _DISTAL_SLAB_MM[1])
+        distal = _surface_in((s > bottom + _DISTAL_SLAB_MM[0]) & (s < bottom + _DISTAL_SLAB_MM[1]),
+                             "where the distal metaphysis should be")
         ankle_xy = _bbox_centre(_frame_coords(points[distal], centre, axes))
         ankle = centre + axis * (bottom + _DISTAL_SLAB_MM[0]) + ankle_xy @ axes
     z = (knee - ankle) / np.linalg.norm(knee - ankle)
@@ -115,7 +144,8 @@ def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
         right = lateral if side == "right" else -lateral  # anatomical +x: the patient's right
         anterior = np.cross(z, right)
     else:
-        band = (s < top - _TUBEROSITY_BAND_MM[0]) & (s > top - _TUBEROSITY_BAND_MM[1])
+        band = _surface_in((s < top - _TUBEROSITY_BAND_MM[0]) & (s > top - _TUBEROSITY_BAND_MM[1]),
+                           "where the tibial tuberosity should be")
         offsets = _frame_coords(points[band], centre, axes)[:, 1] - knee_xy[1]
         anterior = ap if offsets.max() > -offsets.min() else -ap
     return Landmarks(knee, ankle, anterior, side)
@@ -138,20 +168,31 @@ class PlanStore:
         return self.root / _folder_name(patient_id, side)
 
     def summaries(self) -> list[PlanSummary]:
+        """Every plan folder, an unreadable one with its ``error`` (and a warning) so that one
+        damaged plan never hides the others. Dot folders (``.staging-*`` left by an
+        interrupted import) are not plans."""
         out = []
         for doc_path in sorted(self.root.glob("*/plan.json")):
-            doc = json.loads(doc_path.read_text())
-            provenance_path = doc_path.parent / "provenance.json"
-            prov = json.loads(provenance_path.read_text()) if provenance_path.is_file() else {}
-            out.append(PlanSummary(doc_path.parent, str(doc.get("patient_id")), str(doc.get("side")),
-                                   doc.get("target", {}), prov.get("landmarks", "given"),
-                                   prov.get("imported", "")))
+            folder = doc_path.parent
+            if folder.name.startswith("."):
+                continue
+            try:
+                out.append(_read_summary(folder))
+            except ValueError as exc:
+                log.warning("plan folder %s is unreadable and skipped: %s", folder, exc)
+                out.append(PlanSummary(folder, "?", "?", {}, "", "", error=str(exc)))
         return out
 
     def find(self, patient_id: str, laterality: str | None) -> Plan:
         """The plan for this patient and side (L/R); without a laterality, the patient's only
-        plan. ValueError says what is missing or ambiguous."""
-        mine = [s for s in self.summaries() if s.patient_id == patient_id]
+        plan. ValueError says what is missing, ambiguous or unreadable."""
+        summaries = self.summaries()
+        sides = LATERALITY_TO_SIDE.values() if laterality is None else [LATERALITY_TO_SIDE[laterality]]
+        own = {_folder_name(patient_id, side) for side in sides}
+        for s in summaries:
+            if s.error is not None and s.folder.name in own:
+                raise ValueError(f"the plan of patient {patient_id!r} is unreadable: {s.error}")
+        mine = [s for s in summaries if s.error is None and s.patient_id == patient_id]
         if laterality is not None:
             side = LATERALITY_TO_SIDE[laterality]
             mine = [s for s in mine if s.side == side]
@@ -226,12 +267,17 @@ def cmd_plan_add(args: argparse.Namespace) -> int:
             raise ValueError(f"--side {args.side} differs from the landmarks' side {landmarks.side}")
         how = "given"
     else:
-        landmarks = estimate_landmarks(tibia, fibula, args.side)
+        try:
+            landmarks = estimate_landmarks(tibia, fibula, args.side)
+        except ValueError as exc:
+            raise ValueError(f"{args.tibia}: {exc}") from None
         how = "estimated"
         print("landmarks were not given: estimated from the full-length tibia "
               f"(knee centre {np.round(landmarks.knee_centre, 1).tolist()} mm, ankle centre "
               f"{np.round(landmarks.ankle_centre, 1).tolist()} mm); check them with "
               "`slamtka plan show`")
+    check_layout(tibia, fibula, landmarks, str(args.fibula),
+                 str(args.landmarks) if args.landmarks is not None else "estimated landmarks")
     target = Target(args.target_ctr, args.target_str, args.tolerance)
     spec = PinSpec()
     plan = Plan(tibia, fibula, landmarks, build_pin(spec), spec, target, args.patient_id,
@@ -253,6 +299,9 @@ def cmd_plan_list(args: argparse.Namespace) -> int:
     if not summaries:
         print("no plans")
     for s in summaries:
+        if s.error is not None:
+            print(f"{'?':24s} unreadable: {s.error}")
+            continue
         print(f"{s.patient_id:24s} {s.side:6s} CTR {s.target.get('ctr_deg', 0):+.1f} "
               f"STR {s.target.get('str_deg', 0):+.1f} +-{s.target.get('tolerance_deg', 0):.1f} deg  "
               f"landmarks {s.landmarks:9s} {s.folder.name}")

@@ -59,7 +59,11 @@ class Service:
     def __init__(self, config: ServiceConfig):
         self.config = config
         for folder in (config.data_dir, config.output, config.plans):
-            folder.mkdir(parents=True, exist_ok=True)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:  # e.g. the path is a file: say which, not a traceback
+                raise RuntimeError(f"{folder}: cannot create the service folder "
+                                   f"({exc.strerror or exc})") from None
         self.metrics = Metrics()
         self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe])
         self.spool = Spool(config.spool_dir)
@@ -123,7 +127,14 @@ class Service:
         partial = remove_partial(self.spool.instances) + self.sender.recover()
         due = self._recover()
         self.sender.start()
-        self.receiver.start()
+        try:
+            self.receiver.start()
+        except OSError as exc:  # address in use or not on this host: stop what started, say so
+            self.sender.stop()
+            if self.link is not None:
+                self.link.stop()
+            raise RuntimeError(f"cannot listen for DICOM on {self.config.dicom.bind_address}:"
+                               f"{self.config.dicom.port} ({exc.strerror or exc})") from None
         self._worker = threading.Thread(target=self._work, args=(due,), name="slamtka-worker",
                                         daemon=True)
         self._worker.start()

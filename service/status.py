@@ -22,6 +22,8 @@ from pathlib import Path
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification
 
+from solver.jsonfile import read_json_object
+
 from .config import ServiceConfig, load_config
 from .scp import client_ssl_context
 from .spool import write_json_atomic
@@ -202,11 +204,16 @@ def _describe(status: dict) -> str:
     return "\n".join(lines)
 
 
+def _read_status(path: Path) -> dict:
+    """The status snapshot; a damaged one (e.g. the disk filled mid-write) is named."""
+    return read_json_object(path)
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     ok = True
     if config.status_file.is_file():
-        status = json.loads(config.status_file.read_text())
+        status = _read_status(config.status_file)
         ok = status.get("state") == "running" and _age_s(status) <= STALE_AFTER_S
         if args.json:
             print(json.dumps(status, indent=2))

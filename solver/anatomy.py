@@ -13,13 +13,13 @@ Angles of a resection plane with unit normal ``n`` (anatomical frame, ``n_z > 0`
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .geometry import Pose
+from .jsonfile import read_json_object
 
 __all__ = ["Landmarks", "SIGN_CONVENTION", "resection_angles", "plane_normal_from_angles"]
 
@@ -57,6 +57,11 @@ class Landmarks:
                 f"knee-to-ankle distance {length:.1f} mm is not a plausible tibial mechanical "
                 "axis (250-500 mm); check the landmark units"
             )
+        if not np.linalg.norm(self.anterior) > 0.0:
+            # A zero vector would pass the parallelism test below (0 < 0 is false) and give
+            # the anatomical frame NaN axes.
+            raise ValueError("the anterior direction is a zero vector (or the tuberosity is at "
+                             "the knee centre); give a direction pointing anterior")
         axis = (self.knee_centre - self.ankle_centre) / length
         across = self.anterior - np.dot(self.anterior, axis) * axis
         if np.linalg.norm(across) < 0.5 * np.linalg.norm(self.anterior):
@@ -120,10 +125,12 @@ class Landmarks:
 
     @staticmethod
     def load(path: Path) -> Landmarks:
+        """Landmarks from a JSON file; any refusal names the file."""
+        doc = read_json_object(path)
         try:
-            return Landmarks.from_json(json.loads(Path(path).read_text()))
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+            return Landmarks.from_json(doc)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
 def resection_angles(normal_anat: np.ndarray, medial_sign: float) -> tuple[float, float]:

@@ -10,6 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+import operator
+
 import numpy as np
 
 from .geometry import row_norms
@@ -18,6 +21,27 @@ __all__ = ["Camera"]
 
 # Points closer to the source than this (mm) are treated as behind the camera.
 MIN_DEPTH_MM = 1.0
+
+# Plausible image sides in pixels: a larger value is a typo that would exhaust memory in the
+# full-image distance maps, a smaller one cannot hold a contour.
+MIN_IMAGE_SIDE_PX = 16
+MAX_IMAGE_SIDE_PX = 16384
+
+
+def _image_side(name: str, value) -> int:
+    """``value`` as a whole number of pixels (a float is accepted only if integral, so a
+    fractional size is refused rather than silently truncated)."""
+    if isinstance(value, bool):
+        raise ValueError(f"camera {name} must be a whole number of pixels, got {value!r}")
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    try:
+        side = operator.index(value)
+    except TypeError:
+        raise ValueError(f"camera {name} must be a whole number of pixels, got {value!r}") from None
+    if not MIN_IMAGE_SIDE_PX <= side <= MAX_IMAGE_SIDE_PX:
+        raise ValueError(f"camera {name} {side} px is outside {MIN_IMAGE_SIDE_PX}..{MAX_IMAGE_SIDE_PX}")
+    return side
 
 
 @dataclass(frozen=True)
@@ -33,10 +57,16 @@ class Camera:
     fov_radius_px: float | None = None  # circular field of view of an image intensifier
 
     def __post_init__(self) -> None:
-        if self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
-        if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        # NaN compares false with everything, so each test is written to fail on it.
+        if not (math.isfinite(self.fx) and math.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+            raise ValueError(f"focal lengths must be finite and positive, got fx={self.fx}, fy={self.fy}")
+        if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
+            raise ValueError(f"principal point must be finite, got cx={self.cx}, cy={self.cy}")
+        _image_side("width", self.width)
+        _image_side("height", self.height)
+        if self.fov_radius_px is not None and not (math.isfinite(self.fov_radius_px)
+                                                   and self.fov_radius_px > 0):
+            raise ValueError(f"fov_radius_px must be finite and positive, got {self.fov_radius_px}")
 
     @staticmethod
     def from_geometry(
@@ -108,15 +138,19 @@ class Camera:
 
     @staticmethod
     def from_json(d: dict) -> Camera:
+        if not isinstance(d, dict):
+            raise ValueError(f"camera description must be an object, not {type(d).__name__}")
         try:
             return Camera(
                 float(d["fx"]),
                 float(d["fy"]),
                 float(d["cx"]),
                 float(d["cy"]),
-                int(d["width"]),
-                int(d["height"]),
+                _image_side("width", d["width"]),
+                _image_side("height", d["height"]),
                 None if d.get("fov_radius_px") is None else float(d["fov_radius_px"]),
             )
         except KeyError as missing:
             raise ValueError(f"camera description lacks the field {missing}") from None
+        except TypeError as exc:
+            raise ValueError(f"camera description has a field of the wrong type ({exc})") from None

@@ -23,6 +23,7 @@ import numpy as np
 from .camera import Camera
 from .geometry import Pose
 from .imaging import calibration as imaging_calibration
+from .jsonfile import read_json_object
 from .observations import LABELS, ViewObservation
 from .plan import Plan
 from .slam import InitialGuess
@@ -43,13 +44,45 @@ class Case:
     calibration_id: str
 
 
-def _read_json(path: Path) -> dict:
-    if not path.is_file():
-        raise ValueError(f"{path}: file missing from the case folder")
+# Contour points may lie this far outside the image (undistortion moves rim points outwards);
+# beyond it they would be silently dropped from the distance maps, so the file is refused.
+CONTOUR_MARGIN_PX = 64.0
+
+
+def _part(folder: Path, manifest: dict, key: str, default: str) -> Path:
+    """Path of the case part that case.json names under ``key``."""
+    name = manifest.get(key, default)
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{folder / 'case.json'}: {key!r} must be a file name, got {name!r}")
+    return folder / name
+
+
+def _pose(path: Path, what: str, rows) -> Pose:
+    """A pose read from ``path``: a finite 4x4 rigid transform (a NaN would only surface
+    deep in the solver as an unrelated numpy error)."""
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        M = np.asarray(rows, dtype=float)
+        if M.shape == (4, 4) and not np.all(np.isfinite(M)):
+            raise ValueError("has non-finite entries")
+        return Pose.from_matrix(M)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {what}: not a valid pose ({exc})") from None
+
+
+def _contour(path: Path, view_id: str, label: str, value, camera: Camera) -> np.ndarray:
+    """A contour's pixels as a float array; numbers only, within the image (with a margin)."""
+    try:
+        pts = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: view {view_id!r}: {label} contour must be a list of "
+                         "(u, v) number pairs") from None
+    if pts.size and pts.ndim == 2 and pts.shape[1] == 2 and np.all(np.isfinite(pts)):
+        low = pts.min(axis=0) < -CONTOUR_MARGIN_PX
+        high = pts.max(axis=0) > np.array([camera.width, camera.height]) - 1 + CONTOUR_MARGIN_PX
+        if np.any(low) or np.any(high):
+            raise ValueError(f"{path}: view {view_id!r}: {label} contour has points outside the "
+                             f"{camera.width}x{camera.height} image")
+    return pts
 
 
 def _load_calibration(path: Path) -> tuple[Camera, str]:
@@ -107,26 +140,41 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
 
 def load_case(folder: Path) -> Case:
     folder = Path(folder)
-    manifest = _read_json(folder / "case.json")
+    manifest = read_json_object(folder / "case.json")
     if manifest.get("format") != CASE_FORMAT:
         raise ValueError(f"{folder}: case format {manifest.get('format')!r} is not {CASE_FORMAT!r}")
-    plan = Plan.load(folder / manifest.get("plan", "plan"))
-    camera, calibration_id = _load_calibration(folder / manifest.get("calibration", "calibration.json"))
-    contours = _read_json(folder / manifest.get("contours", "contours.json"))
+    plan = Plan.load(_part(folder, manifest, "plan", "plan"))
+    camera, calibration_id = _load_calibration(_part(folder, manifest, "calibration", "calibration.json"))
+    contours_path = _part(folder, manifest, "contours", "contours.json")
+    contours = read_json_object(contours_path)
     if contours.get("format") != CONTOURS_FORMAT:
-        raise ValueError(f"contours format {contours.get('format')!r} is not {CONTOURS_FORMAT!r}")
-    initial_doc = _read_json(folder / manifest.get("initial", "initial.json"))
+        raise ValueError(f"{contours_path}: contours format {contours.get('format')!r} "
+                         f"is not {CONTOURS_FORMAT!r}")
+    initial_path = _part(folder, manifest, "initial", "initial.json")
+    initial_doc = read_json_object(initial_path)
+    entries, initial_views = contours.get("views", []), initial_doc.get("views", {})
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise ValueError(f"{contours_path}: 'views' must be a list of objects, one per view")
+    if not isinstance(initial_views, dict):
+        raise ValueError(f"{initial_path}: 'views' must be an object mapping view id to pose")
     views, poses = [], []
-    for entry in contours.get("views", []):
+    for entry in entries:
         view_id = str(entry.get("view_id", ""))
-        if view_id not in initial_doc.get("views", {}):
+        if view_id not in initial_views:
             raise ValueError(f"view {view_id!r} has contours but no initial pose in initial.json")
-        views.append(ViewObservation(view_id, camera,
-                                     {label: np.asarray(entry.get(label, []), float) for label in LABELS}))
-        poses.append(Pose.from_json(initial_doc["views"][view_id]))
-    pins = [Pose.from_json(p) for p in initial_doc.get("pins", [])]
+        pixels = {label: _contour(contours_path, view_id, label, entry.get(label, []), camera)
+                  for label in LABELS}
+        try:
+            views.append(ViewObservation(view_id, camera, pixels))
+        except ValueError as exc:
+            raise ValueError(f"{contours_path}: {exc}") from None
+        poses.append(_pose(initial_path, f"view {view_id!r}", initial_views[view_id]))
+    pin_docs = initial_doc.get("pins", [])
+    if not isinstance(pin_docs, list):
+        raise ValueError(f"{initial_path}: 'pins' must be a list of two poses")
+    pins = [_pose(initial_path, f"pin {k + 1}", p) for k, p in enumerate(pin_docs)]
     if len(pins) != 2:
-        raise ValueError(f"initial.json must give exactly two pin poses, found {len(pins)}")
+        raise ValueError(f"{initial_path}: must give exactly two pin poses, found {len(pins)}")
     return Case(folder, str(manifest.get("case_id", folder.name)), plan, views,
                 InitialGuess(tuple(poses), (pins[0], pins[1]), _odometry_sigma(initial_doc)),
                 calibration_id)

@@ -40,6 +40,14 @@ def _detect_scale(extent: float, expected_mm: tuple[float, float], name: str) ->
     )
 
 
+def _count_pieces(mesh: trimesh.Trimesh) -> int:
+    """Number of face-connected pieces. Not ``mesh.split()``: that tries to fill the pieces'
+    holes, which needs networkx (not a dependency), only to be counted."""
+    components = trimesh.graph.connected_components(
+        mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), engine="scipy")
+    return len(components)
+
+
 def load_mesh(
     path: str | Path,
     expected_extent_mm: tuple[float, float],
@@ -60,6 +68,10 @@ def load_mesh(
         raise MeshError(f"{name}: unsupported mesh format {path.suffix!r} (use STL, PLY or OBJ)")
     try:
         loaded = trimesh.load(path, force="mesh", process=True)
+    except ImportError as exc:
+        # Bytes that are neither binary STL nor text send trimesh to an optional text-encoding
+        # detector; the missing module says nothing useful about the file.
+        raise MeshError(f"{name}: not a readable mesh (corrupt, or not a {path.suffix} file)") from exc
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise MeshError(f"{name}: cannot be read as a mesh ({exc})") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
@@ -88,7 +100,7 @@ def load_mesh(
     mesh.apply_scale(scale)
 
     if not mesh.is_watertight:
-        message = f"{name}: mesh is not watertight ({len(mesh.split(only_watertight=False))} pieces)"
+        message = f"{name}: mesh is not watertight ({_count_pieces(mesh)} pieces)"
         if require_watertight:
             raise MeshError(message)
         log.warning("%s; inside/outside is decided by winding numbers", message)

@@ -16,20 +16,24 @@ Plan folder::
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
 from .anatomy import Landmarks
+from .jsonfile import read_json_object
 from .meshes import load_mesh
 from .phantom import build_phantom
 from .pin import PinSpec, build_pin
 from .sdf import SignedDistanceField
 from .silhouette import ContourGenerator
 
-__all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT"]
+__all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout"]
 
 PLAN_FORMAT = "slamtka-plan/1"
 BONE_EXTENT_MM = (40.0, 600.0)
@@ -40,6 +44,10 @@ _SILHOUETTE_MAX_FACES = 6000
 _SEARCH_MAX_FACES = 1500
 # Segmentation error of a bone surface from CT (SD, mm), when the plan does not state its own.
 DEFAULT_SEGMENTATION_SD_MM = 0.5
+# A fibula lies beside its tibia and the knee centre on the tibia's plateau, so their bounding
+# boxes touch or overlap. Farther apart than this they belong to another patient, frame or unit
+# (and a distance field spanning both would be enormous).
+MAX_LAYOUT_GAP_MM = 50.0
 
 
 @dataclass(frozen=True)
@@ -51,10 +59,42 @@ class Target:
     tolerance_deg: float = 3.0
 
     def __post_init__(self) -> None:
+        for name in ("ctr_deg", "str_deg", "tolerance_deg"):
+            value = getattr(self, name)
+            # NaN passes every range comparison below, so finiteness is checked first.
+            if (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                    or not math.isfinite(value)):
+                raise ValueError(f"target {name} must be a finite number of degrees, got {value!r}")
         if not 0.0 < self.tolerance_deg <= 15.0:
             raise ValueError(f"tolerance {self.tolerance_deg} deg is outside (0, 15]")
         if abs(self.ctr_deg) > 20.0 or abs(self.str_deg) > 20.0:
             raise ValueError("planned CTR/STR beyond 20 deg are not plausible")
+
+
+def _box_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance (mm) between two axis-aligned boxes given as (2, 3) lower/upper corners."""
+    return float(np.linalg.norm(np.maximum(0.0, np.maximum(a[0] - b[1], b[0] - a[1]))))
+
+
+def check_layout(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None, landmarks: Landmarks,
+                 fibula_name: str = "fibula", landmarks_name: str = "landmarks") -> None:
+    """Refuse a fibula or landmarks that cannot belong to this tibia (another patient, frame
+    or units): caught at import, with the file named, rather than as a wrong measurement or
+    an enormous distance field. The names are those of the files, for the message."""
+    if fibula is not None:
+        gap = _box_gap(fibula.bounds, tibia.bounds)
+        if gap > MAX_LAYOUT_GAP_MM:
+            raise ValueError(
+                f"{fibula_name}: the fibula lies {gap:.0f} mm away from the tibia (more than "
+                f"{MAX_LAYOUT_GAP_MM:.0f} mm between their bounding boxes): not this tibia's "
+                "fibula, or in another frame or units")
+    knee = landmarks.knee_centre
+    gap = _box_gap(np.vstack([knee, knee]), tibia.bounds)
+    if gap > MAX_LAYOUT_GAP_MM:
+        raise ValueError(
+            f"{landmarks_name}: the knee centre {np.round(knee, 1).tolist()} mm lies {gap:.0f} mm "
+            f"outside the tibia mesh's bounding box (more than {MAX_LAYOUT_GAP_MM:.0f} mm): "
+            "landmarks of another mesh, frame or units")
 
 
 @dataclass
@@ -132,9 +172,11 @@ class Plan:
                     segmentation_sd_mm: float = DEFAULT_SEGMENTATION_SD_MM) -> Plan:
         """A plan from mesh files (units detected) and a landmarks JSON, default pin."""
         spec = PinSpec()
-        return Plan(load_mesh(tibia, BONE_EXTENT_MM),
-                    None if fibula is None else load_mesh(fibula, BONE_EXTENT_MM),
-                    Landmarks.load(landmarks), build_pin(spec), spec, target,
+        tibia_mesh = load_mesh(tibia, BONE_EXTENT_MM)
+        fibula_mesh = None if fibula is None else load_mesh(fibula, BONE_EXTENT_MM)
+        marks = Landmarks.load(landmarks)
+        check_layout(tibia_mesh, fibula_mesh, marks, str(fibula), str(landmarks))
+        return Plan(tibia_mesh, fibula_mesh, marks, build_pin(spec), spec, target,
                     segmentation_sd_mm=segmentation_sd_mm)
 
     def bone_meshes(self) -> list[trimesh.Trimesh]:
@@ -191,10 +233,7 @@ class Plan:
         path = folder / "plan.json"
         if not path.is_file():
             raise ValueError(f"{folder}: no plan.json (not a plan folder)")
-        try:
-            doc = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        doc = read_json_object(path)
         if doc.get("format") != PLAN_FORMAT:
             raise ValueError(f"{path}: format {doc.get('format')!r} is not {PLAN_FORMAT!r}")
         try:
@@ -215,7 +254,10 @@ class Plan:
             else:
                 pin_spec = PinSpec(**pin_doc.get("parametric", {}))
                 pin_mesh = build_pin(pin_spec)
-            target = Target(**doc.get("target", {}))
+            try:
+                target = Target(**doc.get("target", {}))
+            except ValueError as exc:
+                raise ValueError(f"{path}: {exc}") from None
             segmentation_sd_mm = doc.get("segmentation_sd_mm", DEFAULT_SEGMENTATION_SD_MM)
             if (isinstance(segmentation_sd_mm, bool) or not isinstance(segmentation_sd_mm, (int, float))
                     or not 0.0 <= segmentation_sd_mm <= 5.0):

@@ -11,8 +11,10 @@ with finite differences).
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +24,9 @@ import trimesh
 
 from .geometry import row_norms
 
-__all__ = ["SignedDistanceField", "mesh_digest"]
+__all__ = ["SignedDistanceField", "mesh_digest", "MAX_GRID_VOXELS"]
+
+log = logging.getLogger(__name__)
 
 # Bump when the sampling scheme changes so stale caches are not reused.
 _CACHE_VERSION = 1
@@ -30,6 +34,11 @@ _CACHE_VERSION = 1
 # interpolated from a grid this many times coarser (its sign and slope are all that matter).
 _BAND_VOXELS = 6
 _COARSE_FACTOR = 4
+# Largest grid built. Building peaks at about 300 bytes per voxel (1.1 GB for the phantom's
+# 3.1 million voxels: tibia with fibula at 1 mm); the knee-smith2019 meshes need 0.8 million
+# and a large full-length leg about 6 million. 12 million (about 4 GB) leaves that margin while
+# refusing meshes far apart or in the wrong units, which would exhaust the memory.
+MAX_GRID_VOXELS = 12_000_000
 
 
 def mesh_digest(meshes: list[trimesh.Trimesh]) -> str:
@@ -86,14 +95,21 @@ class SignedDistanceField:
         lo = np.min([m.bounds[0] for m in meshes], axis=0) - margin_mm
         hi = np.max([m.bounds[1] for m in meshes], axis=0) + margin_mm
         shape = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
+        voxels = int(np.prod(shape.astype(np.int64)))
+        if voxels > MAX_GRID_VOXELS:
+            extent = " x ".join(f"{e:.0f}" for e in hi - lo)
+            raise ValueError(
+                f"the models span {extent} mm: a distance field at {spacing_mm:g} mm would need "
+                f"{voxels:,} voxels (at most {MAX_GRID_VOXELS:,}); check the mesh units and that "
+                "the meshes lie together")
         coarse = SignedDistanceField._sample(meshes, lo, spacing_mm * _COARSE_FACTOR,
                                              shape // _COARSE_FACTOR + 2, band_mm=None)
         fine = SignedDistanceField._sample(meshes, lo, spacing_mm, shape,
                                            band_mm=_BAND_VOXELS * spacing_mm)
         far = np.isnan(fine.values)
-        grid_points = fine.grid_points()[far.ravel()]
         values = fine.values.copy()
-        values[far] = coarse.query(grid_points)[0]
+        if far.any():  # a small model's band may cover the whole grid
+            values[far] = coarse.query(fine.grid_points()[far.ravel()])[0]
         return SignedDistanceField(lo, spacing_mm, values.astype(np.float32), mesh_digest(meshes))
 
     @staticmethod
@@ -114,7 +130,11 @@ class SignedDistanceField:
         ).hexdigest()[:24]
         path = Path(cache_dir) / f"sdf-{key}.npz"
         if path.exists():
-            return SignedDistanceField.load(path)
+            try:
+                return SignedDistanceField.load(path)
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+                # The cache is documented as safe to delete: a damaged entry is rebuilt.
+                log.warning("%s: unreadable cached distance field (%s); rebuilding it", path, exc)
         field = SignedDistanceField.build(meshes, spacing_mm, margin_mm)
         field.save(path)
         return field

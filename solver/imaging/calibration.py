@@ -44,6 +44,7 @@ from scipy import ndimage
 from scipy.optimize import least_squares
 
 from ..camera import Camera
+from ..jsonfile import read_json_object
 from .distortion import Distortion
 from .field import FieldError, attenuation, field_of_view
 from .phantom import PhantomSpec
@@ -158,13 +159,11 @@ def load_calibration(path: str | Path) -> Calibration:
     """Read and verify a calibration file (version 2, or version 1 without distortion)."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
-    except OSError as exc:
-        raise CalibrationError(f"{path}: cannot read calibration ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path}: not valid JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") not in (FORMAT, FORMAT_V1):
-        raise CalibrationError(f"{path}: format {doc.get('format') if isinstance(doc, dict) else None!r} "
+        doc = read_json_object(path)
+    except ValueError as exc:
+        raise CalibrationError(str(exc)) from None
+    if doc.get("format") not in (FORMAT, FORMAT_V1):
+        raise CalibrationError(f"{path}: format {doc.get('format')!r} "
                                f"is not {FORMAT!r} or {FORMAT_V1!r}")
     body = {k: v for k, v in doc.items() if k != "sha256"}
     if doc.get("sha256") != _digest(body):
@@ -172,6 +171,9 @@ def load_calibration(path: str | Path) -> Calibration:
     try:
         camera = Camera.from_json(doc["camera"])
         distortion_doc = doc.get("distortion") or {"model": "none"}
+        if not isinstance(distortion_doc, dict):
+            raise TypeError(f"distortion must be an object with a model, "
+                            f"not {type(distortion_doc).__name__}")
         distortion = None if distortion_doc.get("model") == "none" else Distortion.from_json(distortion_doc)
         spacing = (doc.get("detector") or {}).get("pixel_spacing_mm")
         spacing = None if spacing is None else (float(spacing[0]), float(spacing[1]))

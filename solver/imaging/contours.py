@@ -34,7 +34,6 @@ Manual contours (the in-vivo protocol had the surgeon draw them) are read by
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..jsonfile import read_json_object
 from .field import FieldError, attenuation, field_of_view, fill_holes
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
@@ -525,9 +525,9 @@ def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedCont
     """
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ContourError(f"{path}: cannot read contours ({exc})") from None
+        doc = read_json_object(path)
+    except ValueError as exc:
+        raise ContourError(str(exc)) from None
     if doc.get("format") != _CONTOURS_FORMAT:
         raise ContourError(f"{path}: format {doc.get('format')!r} is not {_CONTOURS_FORMAT!r}")
     if doc.get("units", "px") != "px":
