@@ -199,8 +199,14 @@ class Service:
             return
         if case is None:
             return
+        view = case.views[entry.sop_instance_uid]
+        if not view.usable:
+            # Kept in its case (a later reading or configuration may not help, but nothing
+            # received is dropped); said at once, since no run will report it.
+            self.audit.record("view_unusable", case_id=case.case_id,
+                              sop_instance_uid=entry.sop_instance_uid, reason=view.pairing.problem)
         try:
-            self.pipeline.prepare(case, case.views[entry.sop_instance_uid])
+            self.pipeline.prepare(case, view)
         except Exception:  # the run will meet, and report, the same problem
             log.exception("extracting the contours of instance %s ahead failed", entry.id)
         if due:

@@ -34,7 +34,8 @@ __all__ = ["Metrics", "StatusBoard", "echo", "prometheus_text", "add_status_pars
 
 STALE_AFTER_S = 30.0  # a snapshot older than this means the service is not running
 _COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
-            "duplicate": "instances_duplicate", "association_rejected": "associations_rejected",
+            "duplicate": "instances_duplicate", "view_unusable": "views_unusable",
+            "association_rejected": "associations_rejected",
             "connection_refused": "connections_refused", "association_aborted": "associations_aborted",
             "case_triggered": "runs_started", "failed": "runs_failed", "sent": "objects_sent",
             "send_failed": "send_failures", "send_abandoned": "sends_abandoned"}

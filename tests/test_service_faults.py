@@ -12,7 +12,7 @@ import psutil
 import pytest
 from pydicom.uid import UID
 
-from service.audit import AuditLog
+from service.audit import AuditLog, read_audit
 from service.bench_faults import SoakFigures, crash, serial_faults, soak
 from service.bench_hardening import run_items
 from service.config import Destination, SenderConfig
@@ -54,6 +54,9 @@ def test_link_faults_at_exposure_are_reported_never_used_silently(tmp_path):
     doc = json.loads(next((tmp_path / "data" / "output").glob("*/*/result.json")).read_text())
     refused = [s for s in doc["sources"] if s["initialisation"] is None]
     assert refused and "no positioner angles" in refused[0]["problem"]
+    # ... and each such view is audited as it arrives, before any run reports it.
+    unusable = [e for e in read_audit(tmp_path / "data" / "audit.jsonl") if e["event"] == "view_unusable"]
+    assert len(unusable) == 2 and all("no positioner angles" in e["reason"] for e in unusable)
 
 
 def test_a_short_soak_reports_memory_and_descriptors(tmp_path):
