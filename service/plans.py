@@ -258,6 +258,19 @@ def _segmentation_mm(text: str) -> float:
     return value
 
 
+# DICOM's Patient ID (VR LO): up to 64 characters, no control characters, no backslash.
+_PATIENT_ID = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,64}$")
+
+
+def _patient_id(text: str) -> str:
+    """A Patient ID as images will carry it: a plan under any other could never be found."""
+    if not _PATIENT_ID.match(text) or not text.strip():
+        raise argparse.ArgumentTypeError(
+            f"patient ID {text!r} is not a DICOM Patient ID (1-64 printable characters, "
+            "not blank, no backslash)")
+    return text
+
+
 def cmd_plan_add(args: argparse.Namespace) -> int:
     tibia = load_mesh(args.tibia, BONE_EXTENT_MM)
     fibula = None if args.fibula is None else load_mesh(args.fibula, BONE_EXTENT_MM)
@@ -346,7 +359,7 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
 
     p = actions.add_parser("add", help="import a plan (meshes, landmarks, target)")
     common(p)
-    p.add_argument("--patient-id", required=True)
+    p.add_argument("--patient-id", type=_patient_id, required=True)
     p.add_argument("--side", choices=("left", "right"), required=True)
     p.add_argument("--tibia", type=Path, required=True, help="tibia mesh (STL/PLY/OBJ)")
     p.add_argument("--fibula", type=Path, help="fibula mesh")

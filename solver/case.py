@@ -162,6 +162,12 @@ def load_case(folder: Path) -> Case:
         view_id = str(entry.get("view_id", ""))
         if view_id not in initial_views:
             raise ValueError(f"view {view_id!r} has contours but no initial pose in initial.json")
+        if any(v.view_id == view_id for v in views):
+            raise ValueError(f"{contours_path}: view {view_id!r} is given twice")
+        unknown = sorted(set(entry) - {"view_id", *LABELS})
+        if unknown:
+            raise ValueError(f"{contours_path}: view {view_id!r}: unknown contour labels {unknown} "
+                             f"(the labels are {', '.join(LABELS)})")
         pixels = {label: _contour(contours_path, view_id, label, entry.get(label, []), camera)
                   for label in LABELS}
         try:

@@ -62,6 +62,16 @@ def test_the_valid_case_loads(case):
     assert [v.view_id for v in load_case(case).views] == ["view1", "view2"]
 
 
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["views"].append(dict(d["views"][0])), "view 'view1' is given twice"),
+    (lambda d: d["views"][1].__setitem__("pin3", [[1, 2]]), r"view 'view2': unknown contour labels \['pin3'\]"),
+])
+def test_a_repeated_view_or_an_unknown_label_is_refused(case, change, message):
+    _edit(case / "contours.json", change)
+    with pytest.raises(ValueError, match=f"contours.json: {message}"):
+        load_case(case)
+
+
 # -- 1. wrong JSON types ----------------------------------------------------------------------
 
 @pytest.mark.parametrize("name", ["case.json", "contours.json", "initial.json"])

@@ -177,3 +177,13 @@ def test_an_unreadable_cached_field_is_rebuilt(tmp_path, caplog, damage):
     assert "unreadable cached distance field" in caplog.text and path.name in caplog.text
     np.testing.assert_array_equal(rebuilt.values, fresh.values)
     np.testing.assert_array_equal(SignedDistanceField.load(path).values, fresh.values)
+
+
+@pytest.mark.parametrize("patient_id", ["", "   ", "A\\B", "line\nbreak", "x" * 65])
+def test_a_plan_needs_a_patient_id_images_can_carry(tmp_path, capsys, patient_id):
+    with pytest.raises(SystemExit) as stop:
+        main(["plan", "add", "--plans", str(tmp_path), "--patient-id", patient_id,
+              "--side", "right", "--tibia", str(tmp_path / "tibia.stl")])
+    assert stop.value.code == 2
+    assert "is not a DICOM Patient ID" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
