@@ -20,7 +20,6 @@ e.g. ``--faults ber=1e-5,drop=1e-4,noise=0.01,stall=300ms/10s,disconnect=0.5/20`
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import queue
 import select
@@ -32,6 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from solver.jsonfile import read_json_object
 
 from .kinematics import JointReading
 from .protocol import (
@@ -196,11 +197,11 @@ class MotionScript:
     @staticmethod
     def load(path: Path) -> MotionScript:
         """``{"hold_s": 3, "move_s": 2, "views": [{"orbital": -30, "lift": 200, ...}, ...]}``."""
+        doc = read_json_object(path)
         try:
-            doc = json.loads(Path(path).read_text())
             views = tuple(JointReading.from_axes(v) for v in doc["views"])
             return MotionScript(views, float(doc.get("hold_s", 3.0)), float(doc.get("move_s", 2.0)))
-        except (OSError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+        except (KeyError, TypeError, AttributeError, ValueError) as exc:
             raise ValueError(f"motion script {path}: {exc}") from None
 
     def _table(self, axes: tuple[str, ...]) -> np.ndarray:

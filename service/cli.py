@@ -18,6 +18,7 @@ from pathlib import Path
 
 from drivers.carm_sim import add_carm_sim_parser
 from solver.case import load_case, write_case
+from solver.jsonfile import read_json_object
 from solver.plan import Plan
 from solver.result import result_document
 from solver.simulate import SimulationConfig, simulate_case
@@ -101,7 +102,7 @@ def _truth_line(folder: Path, doc: dict) -> str | None:
     path = folder / "ground_truth.json"
     if not path.is_file() or doc["angles"] is None:
         return None
-    truth = json.loads(path.read_text())
+    truth = read_json_object(path)
     e_ctr = doc["angles"]["ctr_deg"] - truth["ctr_deg"]
     e_str = doc["angles"]["str_deg"] - truth["str_deg"]
     return (f"  simulated truth: CTR {truth['ctr_deg']:+.2f}, STR {truth['str_deg']:+.2f} deg; "

@@ -24,6 +24,7 @@ import trimesh
 from solver.anatomy import Landmarks
 from solver.camera import Camera
 from solver.geometry import Pose
+from solver.jsonfile import read_json_object
 from solver.measurement import fit_resection_plane
 from solver.observations import LABELS, ViewObservation
 from solver.pin import PinSpec, build_pin
@@ -205,10 +206,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(_summary(rec))
     problems: list[str] = []
     if args.check is not None:
-        try:
-            expected = json.loads(Path(args.check).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{args.check}: cannot read the result ({exc})") from None
+        expected = read_json_object(args.check)
         problems = check_recording(rec, expected)
         if args.resolve:
             again, notes = resolve_recording(rec)
