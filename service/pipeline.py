@@ -74,7 +74,11 @@ class _ViewInput:
     header: Dataset  # the instance without pixel data (SR evidence, SC reference)
     contours_raw: dict[str, np.ndarray] | None = None
     contour_source: str | None = None
-    used: bool = True
+    left_out: str | None = None  # why the run could not use the view (its source says so)
+
+    @property
+    def used(self) -> bool:
+        return self.left_out is None
 
 
 def result_uid(case_id: str, run_id: str, what: str) -> str:
@@ -240,7 +244,7 @@ class Pipeline:
             case_id=case.case_id, run_id=run_id,
             case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
                   "laterality": case.laterality},
-            sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used)
+            sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used, i.left_out)
                      for i in items] + refused,
             outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=observations,
             calibration={"id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
@@ -282,7 +286,7 @@ class Pipeline:
         for item in items:
             problem = self.calibration.check_frame(item.frame)
             if problem:
-                item.used = False
+                item.left_out = problem
                 reasons.append(f"{item.view_id}: {problem}")
 
     def _measure(self, plan: Plan, usable: list[_ViewInput], recorder: CaseRecorder,
@@ -308,7 +312,7 @@ class Pipeline:
                 item.contours_raw, item.contour_source = self._extract(plan, item.view,
                                                                        item.frame, T, pins)
             if item.contours_raw is None:
-                item.used = False
+                item.left_out = item.contour_source
                 reasons.append(f"{item.view_id}: {item.contour_source}")
                 item.contour_source = None
             else:
@@ -356,7 +360,9 @@ class Pipeline:
                 "solver_config": repr(_SOLVER_CONFIG)}
 
     @staticmethod
-    def _source(view: View, view_id: str, contours: str | None, used: bool) -> dict:
+    def _source(view: View, view_id: str, contours: str | None, used: bool,
+                left_out: str | None = None) -> dict:
+        """A view's entry in ``sources``; ``problem`` says why it was not used, if it was not."""
         when = view.acquisition_datetime
         return {"view_id": view_id, "sop_instance_uid": view.sop_instance_uid,
                 "sop_class_uid": view.sop_class_uid, "series_instance_uid": view.series_uid,
@@ -364,7 +370,7 @@ class Pipeline:
                 "positioner": view.positioner, "initialisation": view.pairing.initialisation,
                 "encoder_reading": view.pairing.encoder_reading,
                 "angle_check": view.pairing.angle_check, "contours": contours, "used": used,
-                "problem": view.pairing.problem}
+                "problem": left_out or view.pairing.problem}
 
     def _refused_sources(self, case: Case, first: int, reasons: list[str]) -> list[dict]:
         """The case's views whose geometry is unknown (no encoder reading at their time, no

@@ -187,6 +187,16 @@ def test_further_views_duplicates_refusals_and_crash_recovery(theatre):
     assert [s["contours"] for s in manual["sources"]] == ["manual", "manual"]
     assert abs(manual["angles"]["ctr_deg"] - case.truth_ctr_deg) < 0.5
 
+    # A frame the calibration does not fit is left out of the run, and its source says why.
+    odd = th.replay_case(case)
+    odd.frames = [odd.frames[0], replace(odd.frames[1], pixels=odd.frames[1].pixels[:-16])]
+    th.acquire(odd, keep_times=True)
+    th.wait_for_result(odd, 60.0)
+    left = json.loads(_wait_file(th.result_folder(odd) / "result.json").read_text())
+    assert left["status"] == "not_measured" and not any(s["used"] for s in left["sources"])
+    assert left["sources"][0]["problem"] is None  # the one view left could not be solved alone
+    assert "but calibration" in left["sources"][1]["problem"]
+
     # A crash after the first view was acknowledged loses nothing: after the restart the
     # second view completes the case.
     crash = th.replay_case(case)
