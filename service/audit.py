@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterator
 __all__ = ["AuditLog", "read_audit", "last_event", "EVENTS"]
 
 EVENTS = ("service_started", "service_stopped", "connection_refused", "association_rejected",
-          "association_aborted", "received", "rejected", "duplicate", "view_unusable",
+          "association_aborted", "context_rejected", "received", "rejected", "duplicate", "view_unusable",
           "case_triggered", "processed", "failed", "sent", "send_failed", "send_abandoned")
 
 

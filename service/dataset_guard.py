@@ -7,7 +7,9 @@ byte stream (explicit or implicit VR) is walked first, iteratively, and refused 
 
 - every element header and value lies inside the message (no 1 GiB or 4 GiB claims),
   values have even lengths and tags ascend strictly within each dataset (no duplicates);
-- undefined lengths appear only on sequences and their items, every one delimited;
+- undefined lengths appear only on sequences and their items, every one delimited, and on
+  the top-level Pixel Data of a compressed transfer syntax, whose fragments must each have a
+  length that fits and end in a sequence delimiter;
 - sequences nest at most :data:`MAX_DEPTH` deep and there are at most :data:`MAX_ELEMENTS`;
 - no command (0000) or file meta (0002) group appears in the dataset.
 
@@ -26,6 +28,7 @@ __all__ = ["DatasetError", "check_dataset_bytes", "MAX_DEPTH", "MAX_ELEMENTS"]
 MAX_DEPTH = 8  # X-ray objects nest sequences 2-3 deep
 MAX_ELEMENTS = 20000
 UNDEFINED = 0xFFFFFFFF
+PIXEL_DATA = 0x7FE00010
 ITEM, ITEM_END, SEQUENCE_END = 0xFFFEE000, 0xFFFEE00D, 0xFFFEE0DD
 _LONG_VRS = frozenset(b"OB OD OF OL OV OW SQ SV UC UN UR UT UV".split())
 _VRS = _LONG_VRS | frozenset(
@@ -47,8 +50,9 @@ def _is_sequence(tag: int, vr: bytes | None, length: int) -> bool:
         return False
 
 
-def check_dataset_bytes(data: bytes, explicit_vr: bool) -> None:
-    """Raise :class:`DatasetError` unless ``data`` is a well-formed little-endian dataset.
+def check_dataset_bytes(data: bytes, explicit_vr: bool, encapsulated: bool = False) -> None:
+    """Raise :class:`DatasetError` unless ``data`` is a well-formed little-endian dataset
+    (``encapsulated``: of a compressed transfer syntax, its Pixel Data in fragments).
 
     The walk is a loop over an explicit stack of open sequences and items (no recursion),
     so a hostile nesting depth costs nothing before it is refused.
@@ -71,6 +75,20 @@ def check_dataset_bytes(data: bytes, explicit_vr: bool) -> None:
             raise DatasetError(f"truncated element header at offset {pos}")
         group, element = struct.unpack_from("<HH", view, pos)
         tag = group << 16 | element
+        if kind == "fragments":  # items of compressed bytes, then the sequence delimiter
+            length = struct.unpack_from("<L", view, pos + 4)[0]
+            pos += 8
+            elements += 1
+            if tag == SEQUENCE_END and length == 0:
+                stack.pop()
+            elif tag != ITEM or length == UNDEFINED or length > len(data) - pos:
+                raise DatasetError(f"Pixel Data fragment at offset {pos - 8} is malformed or "
+                                   "runs past the end of the data")
+            elif elements > MAX_ELEMENTS:
+                raise DatasetError(f"more than {MAX_ELEMENTS} elements")
+            else:
+                pos += length
+            continue
         if kind == "sequence":  # only items and the sequence delimiter may appear here
             length = struct.unpack_from("<L", view, pos + 4)[0]
             pos += 8
@@ -124,9 +142,12 @@ def check_dataset_bytes(data: bytes, explicit_vr: bool) -> None:
                                    "bytes, more than remain")
             stack.append(["sequence", None if length == UNDEFINED else pos + length, -1])
             continue
+        if length == UNDEFINED and encapsulated and tag == PIXEL_DATA and len(stack) == 1:
+            stack.append(["fragments", None, -1])
+            continue
         if length == UNDEFINED:
             raise DatasetError(f"({group:04X},{element:04X}) has an undefined length (only "
-                               "sequences may; compressed pixel data is not accepted)")
+                               "sequences and compressed Pixel Data may)")
         if length % 2:
             raise DatasetError(f"({group:04X},{element:04X}) has an odd length {length}")
         if length > len(data) - pos or end is not None and pos + length > end:

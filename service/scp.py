@@ -22,7 +22,9 @@ from pathlib import Path
 from typing import Callable
 
 from pydicom.dataset import Dataset
-from pydicom.uid import UID, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+from pydicom.pixels.decoders.base import get_decoder
+from pydicom.uid import (UID, ExplicitVRLittleEndian, ImplicitVRLittleEndian, JPEGLossless,
+                         JPEGLosslessSV1, JPEGLSLossless, JPEGLSNearLossless, RLELossless)
 from pynetdicom import AE, evt
 from pynetdicom.sop_class import (
     DigitalXRayImageStorageForPresentation,
@@ -49,14 +51,19 @@ log = logging.getLogger("slamtka.scp")
 STORAGE_SOP_CLASSES = (XRayAngiographicImageStorage, EnhancedXAImageStorage,
                        XRayRadiofluoroscopicImageStorage, DigitalXRayImageStorageForPresentation,
                        DigitalXRayImageStorageForProcessing, SecondaryCaptureImageStorage)
-# Uncompressed only: what every C-arm can send and what we can check byte for byte.
-TRANSFER_SYNTAXES = (ExplicitVRLittleEndian, ImplicitVRLittleEndian)
+UNCOMPRESSED = (ExplicitVRLittleEndian, ImplicitVRLittleEndian)
+# The lossless (and JPEG-LS near-lossless) syntaxes C-arms default to; each is offered only
+# if pydicom has a decoder for it installed (pylibjpeg and its plugins, pyjpegls).
+COMPRESSED = (JPEGLossless, JPEGLosslessSV1, JPEGLSLossless, JPEGLSNearLossless, RLELossless)
+TRANSFER_SYNTAXES = UNCOMPRESSED + tuple(uid for uid in COMPRESSED
+                                         if get_decoder(uid).is_available)
 
 STATUS_SUCCESS = 0x0000
 STATUS_NOT_AUTHORIZED = 0x0124
 STATUS_OUT_OF_RESOURCES = 0xA700
 STATUS_NOT_SOP_CLASS = 0xA900
 STATUS_CANNOT_UNDERSTAND = 0xC000
+_TRANSFER_SYNTAX_NOT_SUPPORTED = 0x04  # presentation context result (PS3.8 9.3.3.2)
 _TLS_VERSIONS = {"1.2": ssl.TLSVersion.TLSv1_2, "1.3": ssl.TLSVersion.TLSv1_3}
 
 
@@ -160,7 +167,7 @@ class DicomReceiver:
 
     def start(self) -> None:
         handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
-                    (evt.EVT_REJECTED, self._on_rejected)]
+                    (evt.EVT_REJECTED, self._on_rejected), (evt.EVT_ACCEPTED, self._on_accepted)]
         limits = WireLimits(self.config, self.audit.record)
         self._server = self.ae.make_server((self.config.bind_address, self.config.port),
                                            evt_handlers=handlers, ssl_context=self._ssl,
@@ -203,6 +210,20 @@ class DicomReceiver:
             reason = "too many connections"  # pynetdicom's backstop; service.wire counts first
         self.audit.record("association_rejected", reason=reason, **peer)
 
+    def _on_accepted(self, event) -> None:
+        """Audit the image contexts refused for want of a transfer syntax we decode: the
+        C-arm then cannot send, and the operator must see which syntaxes it proposed."""
+        proposed = {cx.context_id: cx for cx in event.assoc.requestor.requested_contexts}
+        refused = [{"sop_class_uid": str(cx.abstract_syntax),
+                    "transfer_syntaxes": [str(ts) for ts in proposed[cx.context_id].transfer_syntax]}
+                   for cx in event.assoc.rejected_contexts
+                   if cx.result == _TRANSFER_SYNTAX_NOT_SUPPORTED and cx.context_id in proposed]
+        if refused:
+            peer = self._peer(event)
+            log.warning("%s proposed only transfer syntaxes we do not decode: %s",
+                        peer["calling_ae"], refused)
+            self.audit.record("context_rejected", contexts=refused, **peer)
+
     def _on_store(self, event) -> Dataset:
         peer = self._peer(event)
         context = event.context
@@ -214,8 +235,9 @@ class DicomReceiver:
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
         try:
-            check_dataset_bytes(event.request.DataSet.getvalue(),
-                                not UID(context.transfer_syntax).is_implicit_VR)
+            syntax = UID(context.transfer_syntax)
+            check_dataset_bytes(event.request.DataSet.getvalue(), not syntax.is_implicit_VR,
+                                encapsulated=syntax.is_encapsulated)
             ds = event.dataset
             ds.file_meta = event.file_meta
             refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,

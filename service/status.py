@@ -37,6 +37,7 @@ _COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
             "duplicate": "instances_duplicate", "view_unusable": "views_unusable",
             "association_rejected": "associations_rejected",
             "connection_refused": "connections_refused", "association_aborted": "associations_aborted",
+            "context_rejected": "contexts_rejected",
             "case_triggered": "runs_started", "failed": "runs_failed", "sent": "objects_sent",
             "send_failed": "send_failures", "send_abandoned": "sends_abandoned"}
 
