@@ -9,8 +9,13 @@ Secondary Capture instances and raises :class:`FrameError` naming the attribute 
 missing or invalid. Of an Enhanced XA instance (multi-frame, geometry in functional groups)
 the first frame is used, with the geometry recorded for it.
 
-Pixel convention: ``pixels`` is MONOCHROME2 (higher = brighter on display), unsigned 16 bit.
-A MONOCHROME1 instance is inverted on decode so downstream code sees one convention.
+Pixel convention: ``pixels`` is unsigned 16 bit, higher = more X-ray intensity at the detector
+(bone and metal dark, as MONOCHROME2 XA stores it). The value is read from the bits BitsStored
+and HighBit name (signed values shifted to offset binary); an instance stored the other way
+round (Pixel Intensity Relationship Sign -1, or without it MONOCHROME1 or Presentation LUT
+Shape INVERSE) is inverted on decode so downstream code sees one convention; an attribute
+value outside the standard is refused by name. Uncompressed pixel data is read directly,
+compressed data through pydicom's decoders.
 Times are UTC-aware; an instance without a timezone offset is read as UTC.
 """
 
@@ -23,10 +28,12 @@ from datetime import datetime, timedelta, timezone
 
 import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.pixels import pixel_array
 from pydicom.uid import (
     UID,
     ExplicitVRLittleEndian,
     PYDICOM_IMPLEMENTATION_UID,
+    RLELossless,
     generate_uid,
 )
 
@@ -73,7 +80,7 @@ class FrameError(ValueError):
 class Frame:
     """One C-arm image and the acquisition geometry recorded with it."""
 
-    pixels: np.ndarray  # (H, W) uint16, MONOCHROME2
+    pixels: np.ndarray  # (H, W) uint16, higher = more X-ray intensity (bone dark)
     imager_pixel_spacing_mm: tuple[float, float]  # (row spacing, column spacing) at the detector
     primary_angle_deg: float | None = None  # PositionerPrimaryAngle (LAO +, RAO -)
     secondary_angle_deg: float | None = None  # PositionerSecondaryAngle (CRA +, CAU -)
@@ -301,8 +308,53 @@ def _pixel_spacing(ds: Dataset) -> tuple[float, float]:
     raise FrameError("ImagerPixelSpacing is missing (and no PixelSpacing either)")
 
 
+def _inverted(ds: Dataset, photometric: str) -> bool:
+    """Whether stored values run opposite to the convention (higher = more X-ray intensity
+    at the detector, bone and metal dark, as MONOCHROME2 XA stores it).
+
+    Pixel Intensity Relationship Sign, when present, says exactly that (-1: higher values
+    mean less intensity); the photometric interpretation and Presentation LUT Shape only say
+    how to display, so they decide only without it. MONOCHROME1 and INVERSE are one
+    inversion, not two: DX pairs them to say the same thing.
+    """
+    sign = _integer(ds, "PixelIntensityRelationshipSign", 0) if ds.get(
+        "PixelIntensityRelationshipSign") not in (None, "") else None
+    if sign not in (None, 1, -1):
+        raise FrameError(f"PixelIntensityRelationshipSign {sign} is not +1 or -1")
+    shape = str(ds.get("PresentationLUTShape", "") or "")
+    if shape not in ("", "IDENTITY", "INVERSE"):
+        raise FrameError(f"PresentationLUTShape {shape!r} is not IDENTITY or INVERSE")
+    if sign is not None:
+        return sign == -1
+    return photometric == "MONOCHROME1" or shape == "INVERSE"
+
+
+def _stored_words(ds: Dataset, syntax: UID, frames: int, count: int, bits_allocated: int,
+                  high_bit: int, bits_stored: int) -> np.ndarray:
+    """The first frame's pixel cells as they were stored (unused bits included)."""
+    if not syntax.is_encapsulated:
+        return np.frombuffer(ds.PixelData, "<u1" if bits_allocated == 8 else "<u2", count)
+    if syntax != RLELossless and high_bit != bits_stored - 1:
+        raise FrameError(f"HighBit {high_bit} must be BitsStored - 1 ({bits_stored - 1}) in "
+                         f"JPEG transfer syntax {syntax.name}")
+    try:
+        # pydicom logs each failed decoder's traceback; the FrameError below already says it.
+        with _quiet(_PYDICOM_DECODERS):
+            array = pixel_array(ds, index=0 if frames > 1 else None, correct_unused_bits=False)
+    except Exception as exc:  # pydicom raises many types for bad or undecodable pixel data
+        raise FrameError(f"PixelData cannot be decoded (transfer syntax {syntax}): {exc}") from None
+    if array.size != count:
+        raise FrameError(f"PixelData decodes to {array.size} pixels, Rows x Columns say {count}")
+    return array.reshape(-1)  # signed cells wrap to their two's complement bits on astype
+
+
 def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
-    """The pixel matrix as MONOCHROME2 uint16 and its bits stored."""
+    """The pixel matrix as uint16 in the convention of :func:`_inverted`, and its bits stored.
+
+    The value is read from bits HighBit-BitsStored+1 .. HighBit of each cell (what lies
+    outside, such as old overlay planes, is dropped); signed values are shifted to offset
+    binary (-2^(n-1) becomes 0), which keeps their order.
+    """
     if _integer(ds, "SamplesPerPixel") != 1:
         raise FrameError(f"SamplesPerPixel {ds.SamplesPerPixel} is not 1 (not a grey-scale X-ray)")
     photometric = str(_required(ds, "PhotometricInterpretation"))
@@ -314,12 +366,18 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
         raise FrameError(f"NumberOfFrames {ds.NumberOfFrames!r} is not a number") from None
     if frames < 1 or (frames > 1 and ds.SOPClassUID != ENHANCED_XA_IMAGE_STORAGE):
         raise FrameError(f"NumberOfFrames is {ds.NumberOfFrames}: send single-frame images")
-    if _integer(ds, "PixelRepresentation") != 0:
-        raise FrameError("PixelRepresentation is signed; X-ray frames must be unsigned")
+    representation = _integer(ds, "PixelRepresentation")
+    if representation not in (0, 1):
+        raise FrameError(f"PixelRepresentation {representation} is not 0 (unsigned) or 1 (signed)")
     bits_allocated = _integer(ds, "BitsAllocated")
     bits_stored = _integer(ds, "BitsStored")
     if bits_allocated not in (8, 16) or not 1 <= bits_stored <= bits_allocated:
         raise FrameError(f"BitsAllocated {bits_allocated} / BitsStored {bits_stored} not supported")
+    high_bit = _integer(ds, "HighBit")
+    if not bits_stored - 1 <= high_bit < bits_allocated:
+        raise FrameError(f"HighBit {high_bit} does not fit BitsStored {bits_stored} in "
+                         f"BitsAllocated {bits_allocated}")
+    inverted = _inverted(ds, photometric)
     rows, columns = _integer(ds, "Rows"), _integer(ds, "Columns")
     if rows < 2 or columns < 2:
         raise FrameError(f"Rows/Columns {rows}/{columns}: an image needs at least 2x2 pixels")
@@ -332,18 +390,15 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     if not syntax.is_compressed and len(ds.PixelData) not in (expected, expected + 1):
         raise FrameError(f"PixelData holds {len(ds.PixelData)} bytes, NumberOfFrames x Rows x "
                          f"Columns x BitsAllocated need {expected}")
-    try:
-        # pydicom logs each failed decoder's traceback; the FrameError below already says it.
-        with _quiet(_PYDICOM_DECODERS):
-            array = ds.pixel_array if frames == 1 else ds.pixel_array[0]
-    except Exception as exc:  # pydicom raises many types for bad or undecodable pixel data
-        raise FrameError(f"PixelData cannot be decoded (transfer syntax {syntax}): {exc}") from None
-    if array.shape != (rows, columns):
-        raise FrameError(f"PixelData has shape {array.shape}, Rows/Columns say {(rows, columns)}")
-    pixels = np.asarray(array, dtype=np.uint16) & np.uint16((1 << bits_stored) - 1)
-    if photometric == "MONOCHROME1":
-        pixels = np.uint16((1 << bits_stored) - 1) - pixels
-    return pixels, bits_stored
+    words = _stored_words(ds, syntax, frames, rows * columns, bits_allocated, high_bit,
+                          bits_stored)
+    mask = np.uint16((1 << bits_stored) - 1)
+    pixels = (words.astype(np.uint16) >> np.uint16(high_bit - bits_stored + 1)) & mask
+    if representation == 1:
+        pixels ^= np.uint16(1 << (bits_stored - 1))  # two's complement to offset binary
+    if inverted:
+        pixels = mask - pixels
+    return pixels.reshape(rows, columns), bits_stored
 
 
 def _first_item(ds: Dataset, keyword: str) -> Dataset | None:
