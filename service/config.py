@@ -4,7 +4,8 @@ Every key is declared by a typed dataclass field below, so an unknown key, a wro
 out-of-range value is refused with an error naming the key (``dicom.port: ...``) before the
 service opens a socket. Any scalar key can be overridden from the environment as
 ``SLAMTKA_<SECTION>_<KEY>`` in capitals, e.g. ``SLAMTKA_DICOM_PORT=11113`` or
-``SLAMTKA_DICOM_TLS_ENABLED=true``; destinations are configured in the file only.
+``SLAMTKA_DICOM_TLS_ENABLED=true``; destinations and ``dicom.callers`` are configured in the
+file only.
 ``deploy/slamtka.example.toml`` documents every key.
 """
 
@@ -25,7 +26,8 @@ from typing import Any, Mapping
 from solver.anatomy import Landmarks
 
 __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
-           "load_config", "config_from_dict", "validate_ae_title", "ENV_PREFIX"]
+           "CallerBinding", "load_config", "config_from_dict", "validate_ae_title",
+           "normalise_fingerprint", "ENV_PREFIX"]
 
 ENV_PREFIX = "SLAMTKA_"
 _AE_TITLE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE VR: no backslash, no control
@@ -41,6 +43,27 @@ def validate_ae_title(value: str, where: str) -> str:
         raise ConfigError(f"{where}: {value!r} is not a valid AE title (1-16 printable "
                           "characters, no backslash)")
     return value.strip()
+
+
+def normalise_fingerprint(text: str) -> str:
+    """A SHA-256 certificate fingerprint as lower-case hex (``openssl x509 -fingerprint
+    -sha256`` prints it in capitals with colons; both are accepted in the file)."""
+    return text.replace(":", "").strip().lower()
+
+
+def _check_fingerprint(where: str, text: str) -> None:
+    if text and not re.fullmatch(r"[0-9a-f]{64}", normalise_fingerprint(text)):
+        raise ConfigError(f"{where}: {text!r} is not a SHA-256 fingerprint (64 hex digits, "
+                          "colons allowed)")
+
+
+def _check_networks(where: str, addresses: list[str]) -> None:
+    for i, address in enumerate(addresses):
+        try:
+            ipaddress.ip_network(address, strict=False)
+        except ValueError:
+            raise ConfigError(f"{where}[{i}]: {address!r} is not an IP address or network "
+                              "(e.g. 10.0.3.0/24)") from None
 
 
 def _check_range(where: str, value: float, low: float, high: float) -> None:
@@ -68,6 +91,26 @@ class TlsConfig:
 
 
 @dataclass(frozen=True)
+class CallerBinding:
+    """A calling AE title bound to where it may call from (and, with TLS, its certificate).
+
+    Another address using the title, or the certificate, is refused; a bound caller also
+    has one association slot that unbound callers cannot take.
+    """
+
+    ae_title: str = ""
+    addresses: list[str] = field(default_factory=list)  # IPs or networks
+    certificate_sha256: str = ""  # the client certificate it must present ("" = any valid)
+
+    def check(self, where: str) -> None:
+        validate_ae_title(self.ae_title, f"{where}.ae_title")
+        if not self.addresses:
+            raise ConfigError(f"{where}.addresses: list the addresses {self.ae_title} calls from")
+        _check_networks(f"{where}.addresses", self.addresses)
+        _check_fingerprint(f"{where}.certificate_sha256", self.certificate_sha256)
+
+
+@dataclass(frozen=True)
 class DicomConfig:
     """The receiving side (SCP) and the identity used when sending results."""
 
@@ -80,6 +123,8 @@ class DicomConfig:
     max_pdu_bytes: int = 262144
     max_message_bytes: int = 32 * 1024 * 1024  # one received dataset, assembled in memory
     max_associations: int = 4
+    max_associations_per_address: int = 2  # storing associations one source address may hold
+    callers: list[CallerBinding] = field(default_factory=list)
     max_connections: int = 512  # open sockets, before and during associations
     max_connections_per_peer: int = 8  # per source address
     request_timeout_s: float = 5.0  # TLS handshake, then the first PDU, each within this
@@ -107,17 +152,25 @@ class DicomConfig:
         _check_range(f"{where}.max_pdu_bytes", self.max_pdu_bytes, 4096, 16 * 1024 * 1024)
         _check_range(f"{where}.max_message_bytes", self.max_message_bytes, 1024 * 1024, 1 << 30)
         _check_range(f"{where}.max_associations", self.max_associations, 1, 64)
+        _check_range(f"{where}.max_associations_per_address", self.max_associations_per_address,
+                     1, 64)
+        for i, caller in enumerate(self.callers):
+            caller.check(f"{where}.callers[{i}]")
+            if caller.ae_title not in self.allowed_calling_ae_titles:
+                raise ConfigError(f"{where}.callers[{i}].ae_title: {caller.ae_title!r} is not in "
+                                  "allowed_calling_ae_titles")
+        titles = [c.ae_title for c in self.callers]
+        if len(set(titles)) != len(titles):
+            raise ConfigError(f"{where}.callers: each AE title may be bound once, got {titles}")
+        if self.callers and self.max_associations < 2:
+            raise ConfigError(f"{where}.max_associations: at least 2 when callers are bound "
+                              "(one slot is kept for them)")
         _check_range(f"{where}.max_connections", self.max_connections, self.max_associations,
                      4096)
         _check_range(f"{where}.max_connections_per_peer", self.max_connections_per_peer, 1,
                      self.max_connections)
         _check_range(f"{where}.request_timeout_s", self.request_timeout_s, 0.1, 600.0)
-        for i, address in enumerate(self.allowed_source_addresses):
-            try:
-                ipaddress.ip_network(address, strict=False)
-            except ValueError:
-                raise ConfigError(f"{where}.allowed_source_addresses[{i}]: {address!r} is not an "
-                                  "IP address or network (e.g. 10.0.3.0/24)") from None
+        _check_networks(f"{where}.allowed_source_addresses", self.allowed_source_addresses)
         _check_range(f"{where}.idle_timeout_s", self.idle_timeout_s, 1.0, 3600.0)
         _check_range(f"{where}.dimse_timeout_s", self.dimse_timeout_s, 1.0, 3600.0)
         self.tls.check(f"{where}.tls")
@@ -136,6 +189,8 @@ class Destination:
     ca_certificates: Path | None = None
     certificate: Path | None = None
     private_key: Path | None = None
+    server_name: str = ""  # the name its certificate must carry; default: host
+    certificate_sha256: str = ""  # pin: the SHA-256 of its certificate ("" = any that names it)
 
     def check(self, where: str) -> None:
         if not re.fullmatch(r"[A-Za-z0-9_.-]{1,40}", self.name):
@@ -150,6 +205,7 @@ class Destination:
                               f"{list(_OBJECT_KINDS)}")
         if self.tls and self.ca_certificates is None:
             raise ConfigError(f"{where}.ca_certificates: required when tls = true")
+        _check_fingerprint(f"{where}.certificate_sha256", self.certificate_sha256)
 
 
 @dataclass(frozen=True)
@@ -359,8 +415,9 @@ def _env_keys(cls: type, path: tuple[str, ...] = ()) -> dict[str, tuple[tuple[st
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
         hint = hints[f.name]
-        if f.name in ("source", "destinations"):
-            continue
+        if f.name == "source" or typing.get_origin(hint) is list and dataclasses.is_dataclass(
+                typing.get_args(hint)[0]):
+            continue  # tables of tables (destinations, dicom.callers) live in the file only
         if dataclasses.is_dataclass(hint):
             out.update(_env_keys(hint, path + (f.name,)))
         elif hint is not dict:

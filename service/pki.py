@@ -1,7 +1,8 @@
 """Throwaway TLS certificates for the TLS tests and the hardening bench (never for production).
 
 A private CA, a server and a client certificate it signs, a client certificate signed by an
-unrelated CA and an expired one: the mutual TLS matrix of ``slamtka bench hardening``.
+unrelated CA, an expired one, and one the CA issued to another host (``pacs-b.invalid``,
+127.0.0.9): the mutual TLS matrix and the host-name checks of ``slamtka bench hardening``.
 """
 
 from __future__ import annotations
@@ -16,15 +17,19 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-__all__ = ["make_pki", "client_context"]
+__all__ = ["make_pki", "client_context", "OTHER_HOST"]
 
 
 def _name(common: str) -> x509.Name:
     return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common)])
 
 
+OTHER_HOST = ("pacs-b.invalid", "127.0.0.9")  # whom the "elsewhere" certificate names
+
+
 def _certificate(subject: str, key, issuer: str, issuer_key, ca: bool,
-                 expired: bool = False) -> x509.Certificate:
+                 expired: bool = False, host: tuple[str, str] = ("localhost", "127.0.0.1")
+                 ) -> x509.Certificate:
     now = dt.datetime.now(dt.timezone.utc) - dt.timedelta(days=2 if expired else 0)
     builder = (x509.CertificateBuilder().subject_name(_name(subject)).issuer_name(_name(issuer))
                .public_key(key.public_key()).serial_number(x509.random_serial_number())
@@ -33,17 +38,18 @@ def _certificate(subject: str, key, issuer: str, issuer_key, ca: bool,
                .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True))
     if not ca:
         builder = builder.add_extension(x509.SubjectAlternativeName(
-            [x509.DNSName("localhost"), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+            [x509.DNSName(host[0]), x509.IPAddress(ipaddress.ip_address(host[1]))]),
             critical=False)
     return builder.sign(issuer_key, hashes.SHA256())
 
 
 def make_pki(folder: Path) -> dict[str, Path]:
-    """A CA and, signed by it, a server and a client certificate (plus an untrusted client
-    and an expired one).
+    """A CA and, signed by it, a server and a client certificate (plus an untrusted client,
+    an expired one and another host's).
 
     Returns paths: ca, and cert/key pairs server_*, client_*, rogue_* (signed by another CA),
-    expired_* (signed by the CA, expired yesterday).
+    expired_* (signed by the CA, expired yesterday), elsewhere_* (signed by the CA for
+    :data:`OTHER_HOST`, not for localhost).
     """
     folder.mkdir(parents=True, exist_ok=True)
     ca_key = ec.generate_private_key(ec.SECP256R1())
@@ -54,9 +60,11 @@ def make_pki(folder: Path) -> dict[str, Path]:
     for name, issuer, issuer_key in (("server", "slamtka test CA", ca_key),
                                      ("client", "slamtka test CA", ca_key),
                                      ("rogue", "rogue CA", rogue_ca_key),
-                                     ("expired", "slamtka test CA", ca_key)):
+                                     ("expired", "slamtka test CA", ca_key),
+                                     ("elsewhere", "slamtka test CA", ca_key)):
         key = ec.generate_private_key(ec.SECP256R1())
-        cert = _certificate(name, key, issuer, issuer_key, False, expired=name == "expired")
+        cert = _certificate(name, key, issuer, issuer_key, False, expired=name == "expired",
+                            **({"host": OTHER_HOST} if name == "elsewhere" else {}))
         paths[f"{name}_cert"] = folder / f"{name}.pem"
         paths[f"{name}_key"] = folder / f"{name}.key"
         paths[f"{name}_cert"].write_bytes(cert.public_bytes(serialization.Encoding.PEM))

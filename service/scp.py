@@ -16,9 +16,7 @@ from __future__ import annotations
 
 import logging
 import re
-import ssl
 import threading
-from pathlib import Path
 from typing import Callable
 
 from pydicom.dataset import Dataset
@@ -37,14 +35,14 @@ from pynetdicom.sop_class import (
 )
 
 from .audit import AuditLog
-from .config import ConfigError, DicomConfig, TlsConfig
+from .config import DicomConfig
 from .dataset_guard import DatasetError, check_dataset_bytes
 from .frames import FrameError, decode_frame
 from .spool import Spool, SpoolEntry
+from .tls import server_ssl_context
 from .wire import GuardedServer, WireLimits
 
-__all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_instance",
-           "server_ssl_context", "client_ssl_context"]
+__all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_instance"]
 
 log = logging.getLogger("slamtka.scp")
 
@@ -64,37 +62,6 @@ STATUS_OUT_OF_RESOURCES = 0xA700
 STATUS_NOT_SOP_CLASS = 0xA900
 STATUS_CANNOT_UNDERSTAND = 0xC000
 _TRANSFER_SYNTAX_NOT_SUPPORTED = 0x04  # presentation context result (PS3.8 9.3.3.2)
-_TLS_VERSIONS = {"1.2": ssl.TLSVersion.TLSv1_2, "1.3": ssl.TLSVersion.TLSv1_3}
-
-
-def _load_tls(ctx: ssl.SSLContext, certificate: Path | None, private_key: Path | None,
-              ca_certificates: Path | None, where: str) -> ssl.SSLContext:
-    try:
-        if certificate is not None:
-            ctx.load_cert_chain(certificate, private_key)
-        if ca_certificates is not None:
-            ctx.load_verify_locations(cafile=ca_certificates)
-    except (OSError, ssl.SSLError) as exc:
-        raise ConfigError(f"{where}: cannot load certificates ({exc})") from None
-    return ctx
-
-
-def server_ssl_context(tls: TlsConfig) -> ssl.SSLContext:
-    """Mutual TLS for the SCP: our certificate, client certificates required."""
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    ctx.minimum_version = _TLS_VERSIONS[tls.min_version]
-    ctx.verify_mode = ssl.CERT_REQUIRED
-    return _load_tls(ctx, tls.certificate, tls.private_key, tls.ca_certificates, "dicom.tls")
-
-
-def client_ssl_context(ca_certificates: Path, certificate: Path | None = None,
-                       private_key: Path | None = None, where: str = "tls") -> ssl.SSLContext:
-    """TLS for an SCU: verify the server against ``ca_certificates``, present ours if given."""
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
-    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-    ctx.check_hostname = False  # DICOM nodes are identified by certificate chain and AE title
-    ctx.verify_mode = ssl.CERT_REQUIRED
-    return _load_tls(ctx, certificate, private_key, ca_certificates, where)
 
 
 def check_instance(ds: Dataset, context_sop_class: str, transfer_syntax: str,

@@ -25,8 +25,8 @@ from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 from pynetdicom import AE
 
 from .audit import AuditLog
-from .config import Destination, SenderConfig
-from .scp import client_ssl_context
+from .config import Destination, SenderConfig, normalise_fingerprint
+from .tls import client_ssl_context
 from .spool import remove_partial, write_json_atomic
 
 __all__ = ["Sender", "SendJob", "OutgoingObject"]
@@ -113,28 +113,35 @@ class Sender:
         return self._jobs(self.failed_dir)
 
     # -- sending ----------------------------------------------------------------------------
-    def _association(self, dest: Destination, sop_classes: set[str]):
+    def _association(self, dest: Destination, sop_classes: set[str]) -> tuple[object, str]:
+        """The association (maybe not established) and, if TLS failed, why."""
         ae = AE(ae_title=self.ae_title)
         for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
             setattr(ae, timeout, self.config.timeout_s)
         for sop_class in sorted(sop_classes):
             ae.add_requested_context(sop_class, [ExplicitVRLittleEndian, ImplicitVRLittleEndian])
-        tls = None
-        if dest.tls:
-            tls = (client_ssl_context(dest.ca_certificates, dest.certificate, dest.private_key,
-                                      f"destination {dest.name}"), None)
-        return ae.associate(dest.host, dest.port, ae_title=dest.ae_title, tls_args=tls)
+        if not dest.tls:
+            return ae.associate(dest.host, dest.port, ae_title=dest.ae_title), ""
+        # The certificate must name the host (and be the pinned one, if set).
+        ctx = client_ssl_context(dest.ca_certificates, dest.certificate, dest.private_key,
+                                 f"destination {dest.name}",
+                                 pin_sha256=normalise_fingerprint(dest.certificate_sha256))
+        assoc = ae.associate(dest.host, dest.port, ae_title=dest.ae_title,
+                             tls_args=(ctx, dest.server_name or dest.host))
+        return assoc, ctx.handshake_error
 
     def _send_to(self, dest: Destination, jobs: list[SendJob], now: float) -> int:
         """Send ``jobs`` over one association to ``dest``; how many were sent. Each job is
         settled as soon as its answer comes, so a crash mid-round re-sends one object, not
         the whole round."""
         try:
-            assoc = self._association(dest, {j.sop_class_uid for j in jobs})
+            assoc, tls_error = self._association(dest, {j.sop_class_uid for j in jobs})
         except Exception as exc:  # socket/TLS setup errors of every kind end up here
             return sum(self._settle(j, f"cannot connect: {exc}", now) for j in jobs)
         if not assoc.is_established:
             why = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "failed"
+            if tls_error:
+                why += f" (TLS: {tls_error})"
             return sum(self._settle(j, f"association {why}", now) for j in jobs)
         sent, done = 0, 0
         try:

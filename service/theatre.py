@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -62,16 +63,18 @@ SETUP_TRANS_SD_MM = 5.0
 
 
 class ResultCollector:
-    """A destination SCP on loopback: keeps every result it receives, with its arrival time."""
+    """A destination SCP on loopback (TLS with ``ssl_context``): keeps every result it
+    receives, with its arrival time."""
 
-    def __init__(self, ae_title: str = DISPLAY_AE, port: int = 0):
+    def __init__(self, ae_title: str = DISPLAY_AE, port: int = 0,
+                 ssl_context: ssl.SSLContext | None = None, host: str = "127.0.0.1"):
         self.received: list[tuple[float, Dataset]] = []
         self._changed = threading.Condition()
         ae = AE(ae_title=ae_title)
         ae.require_called_aet = True
         for sop_class in (Comprehensive3DSRStorage, SecondaryCaptureImageStorage, Verification):
             ae.add_supported_context(sop_class)
-        self._server = ae.start_server(("127.0.0.1", port), block=False,
+        self._server = ae.start_server((host, port), block=False, ssl_context=ssl_context,
                                        evt_handlers=[(evt.EVT_C_STORE, self._store)])
         self.port = int(self._server.server_address[1])
 
