@@ -162,6 +162,8 @@ class DicomConfig:
         titles = [c.ae_title for c in self.callers]
         if len(set(titles)) != len(titles):
             raise ConfigError(f"{where}.callers: each AE title may be bound once, got {titles}")
+        if any(c.certificate_sha256 for c in self.callers) and not self.tls.enabled:
+            raise ConfigError(f"{where}.callers: a certificate_sha256 needs tls.enabled = true")
         if self.callers and self.max_associations < 2:
             raise ConfigError(f"{where}.max_associations: at least 2 when callers are bound "
                               "(one slot is kept for them)")

@@ -18,9 +18,9 @@ wraps its server at the byte level, before any of that:
   exceed its limit (``max_message_bytes`` for a dataset), never assembled;
 - a command set must be well formed, its UIDs conformant and a C-STORE must name its
   instance (pynetdicom would abort unaudited, or answer an empty UID with success);
-- associations from the storing C-arms are limited to ``max_associations`` and those of the
-  health-check AE title to :data:`HEALTH_ASSOCIATIONS`, counted from the A-ASSOCIATE-RQ
-  (other callers are refused by AE title and never take a slot).
+- the A-ASSOCIATE-RQ is admitted by :mod:`service.admission` (callers bound to addresses and
+  certificates, association slots per address and in all, one kept for the bound C-arm)
+  before pynetdicom negotiates; callers refused by AE title never take a slot.
 
 A violation sends an A-ABORT (or A-ASSOCIATE-RJ for the association limit), closes the
 connection and is audited; the server keeps serving.
@@ -41,16 +41,19 @@ from typing import Callable
 from pydicom.uid import UID
 from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
 
-__all__ = ["GuardedServer", "WireLimits", "HEALTH_ASSOCIATIONS", "ASSOCIATE_RQ_MAX_BYTES"]
+from .admission import Admission, Ticket
+from .tls import fingerprint
+
+__all__ = ["GuardedServer", "WireLimits", "ASSOCIATE_RQ_MAX_BYTES"]
 
 log = logging.getLogger("slamtka.wire")
 
-HEALTH_ASSOCIATIONS = 2  # concurrent health checks; they never take a C-arm's slot
 ASSOCIATE_RQ_MAX_BYTES = 65536  # room for ~500 presentation contexts
 COMMAND_MAX_BYTES = 65536  # a DIMSE command set is a few hundred bytes
 _SMALL_PDU_BYTES = {0x03: 64, 0x05: 64, 0x06: 64, 0x07: 64}  # reject, release, abort
 _A_ABORT = bytes([0x07, 0, 0, 0, 0, 4, 0, 0, 2, 0])  # source: service provider
 _A_ASSOCIATE_RJ_LIMIT = bytes([0x03, 0, 0, 0, 0, 4, 0, 2, 3, 2])  # transient, local limit
+_A_ASSOCIATE_RJ_CALLER = bytes([0x03, 0, 0, 0, 0, 4, 0, 1, 1, 3])  # calling AE not recognised
 _COMMAND_UIDS = {0x0002: "Affected SOP Class UID", 0x0003: "Requested SOP Class UID",
                  0x1000: "Affected SOP Instance UID", 0x1001: "Requested SOP Instance UID"}
 C_STORE_RQ = 0x0001
@@ -90,7 +93,7 @@ class WireLimits:
                          for a in config.allowed_source_addresses]
         self.max_connections = config.max_connections
         self.max_per_peer = config.max_connections_per_peer
-        self.max_associations = config.max_associations
+        self.admission = Admission(config)
         self.max_pdu = config.max_pdu_bytes
         self.max_message = config.max_message_bytes
         self.request_timeout_s = config.request_timeout_s
@@ -118,17 +121,21 @@ class GuardedSocket(AssociationSocket):
     peer: dict
     _body_type: int | None
     _message_bytes: dict
-    _association: tuple[str, str] | None
+    _association: Ticket | None
+    _requested: bool  # an A-ASSOCIATE-RQ came (one per connection)
     _command: bytearray
+    certificate: str  # SHA-256 of the client certificate ("" without TLS)
 
     @classmethod
     def adopt(cls, plain: AssociationSocket, server: "GuardedServer", peer: dict) -> "GuardedSocket":
         """Take over the socket pynetdicom built (its state, its queued connection event)."""
         sock = cls.__new__(cls)
         sock.__dict__.update(plain.__dict__)
-        sock.guard, sock.peer = server, peer
+        sock.guard, sock.peer, sock._requested = server, peer, False
         sock._body_type, sock._message_bytes, sock._association = None, Counter(), None
         sock._command = bytearray()
+        der = plain.socket.getpeercert(True) if isinstance(plain.socket, ssl.SSLSocket) else None
+        sock.certificate = fingerprint(der) if der else ""
         return sock
 
     def recv(self, nr_bytes: int) -> bytearray:
@@ -151,7 +158,8 @@ class GuardedSocket(AssociationSocket):
             self.socket.sendall(reply)
         except OSError:
             pass
-        event = "association_rejected" if reply is _A_ASSOCIATE_RJ_LIMIT else "association_aborted"
+        self.release()  # this association is over: its slot is free for the next one now
+        event = "association_rejected" if reply[0] == 0x03 else "association_aborted"
         self.guard.limits.audit(event, reason=reason, **self.peer)
         log.warning("%s from %s: %s", event, self.peer["peer"], reason)
         return _Violation(reason)
@@ -164,12 +172,15 @@ class GuardedSocket(AssociationSocket):
         if length > limit:
             raise self._violation(f"PDU type 0x{pdu_type:02X} declares {length} bytes, more than "
                                   f"the {limit} allowed")
+        if pdu_type in (0x05, 0x07):  # the peer releases or aborts: free its slot at once, so
+            self.release()            # its next association is not refused by a lingering one
         self._body_type = pdu_type
 
     def _check_associate(self, body: bytes) -> None:
-        """Count the association against its caller's class (before pynetdicom negotiates)."""
-        if len(body) < 36 or self._association is not None:
+        """Admit the association (before pynetdicom negotiates): binding, then a slot."""
+        if len(body) < 36 or self._requested:
             raise self._violation("malformed or repeated A-ASSOCIATE-RQ")
+        self._requested = True
         called = body[4:20].decode("ascii", "replace").strip()
         calling = body[20:36].decode("ascii", "replace").strip()
         self.peer["calling_ae"] = calling
@@ -179,9 +190,14 @@ class GuardedSocket(AssociationSocket):
                 else "health" if calling == self.guard.limits.health else None)
         if kind is None:
             return
-        if not self.guard.take_slot(kind):
-            raise self._violation("too many associations", _A_ASSOCIATE_RJ_LIMIT)
-        self._association = (kind, calling)
+        admission, address = self.guard.limits.admission, self.peer["peer"]
+        problem = admission.binding_problem(address, calling, self.certificate)
+        if problem:
+            raise self._violation(problem, _A_ASSOCIATE_RJ_CALLER)
+        ticket = admission.take(kind, address, calling)
+        if isinstance(ticket, str):
+            raise self._violation(ticket, _A_ASSOCIATE_RJ_LIMIT)
+        self._association = ticket
 
     def _check_pdata(self, body: bytes) -> None:
         accepted = {cx.context_id for cx in self._assoc.accepted_contexts}
@@ -215,7 +231,7 @@ class GuardedSocket(AssociationSocket):
 
     def release(self) -> None:
         if self._association is not None:
-            self.guard.free_slot(self._association[0])
+            self.guard.limits.admission.release(self._association)
             self._association = None
 
 
@@ -250,23 +266,9 @@ class GuardedServer(ThreadedAssociationServer):
         self.limits = limits
         self._lock = threading.Lock()
         self._peers: Counter[str] = Counter()
-        self._slots: Counter[str] = Counter()
         self._silent: dict[socket.socket, str] = {}  # admitted, no PDU yet; oldest first
         super().__init__(ae, address, ae_title, contexts, ssl_context, evt_handlers,
                          request_handler=_GuardedHandler)
-
-    # -- accounting ----------------------------------------------------------------------
-    def take_slot(self, kind: str) -> bool:
-        limit = self.limits.max_associations if kind == "storer" else HEALTH_ASSOCIATIONS
-        with self._lock:
-            if self._slots[kind] >= limit:
-                return False
-            self._slots[kind] += 1
-            return True
-
-    def free_slot(self, kind: str) -> None:
-        with self._lock:
-            self._slots[kind] -= 1
 
     @property
     def open_connections(self) -> int:
