@@ -7,7 +7,8 @@ a refusal that was not audited, a hang, a server that stopped serving, memory gr
 The tests run every item with small counts; the command runs the large ones and writes
 ``hardening.json``. Attackers use other loopback addresses (127.0.0.2 ...) than the C-arm
 (127.0.0.1), as other hosts would. The crash, fault and soak items run the whole service
-as its own process (:mod:`service.bench_faults`).
+as its own process (:mod:`service.bench_faults`); the TLS-name, AE-squatting, compressed-syntax
+and pixel-layout items are in :mod:`service.bench_network`.
 """
 
 from __future__ import annotations
@@ -531,7 +532,8 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
     """Run each item in ``counts`` in its own folder under ``root``: the receiver items
     against a fresh receiver, the fault items (:mod:`service.bench_faults`) against the
     whole service."""
-    from .bench_faults import FAULT_ITEMS, run_fault_item  # it builds on this module
+    from .bench_faults import FAULT_ITEMS, run_fault_item  # they build on this module
+    from .bench_network import NETWORK_ITEMS, run_network_item
 
     results = {}
     for name, count in counts.items():
@@ -540,6 +542,8 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
         started = time.perf_counter()
         if name in FAULT_ITEMS or name == "soak":
             tally = run_fault_item(name, folder, count)
+        elif name in NETWORK_ITEMS:
+            tally = run_network_item(name, folder, int(count))
         else:
             tally = _receiver_item(name, folder, int(count), bound_s)
         results[name] = {"tried": tally.tried, "failures": tally.failures, **tally.notes,
@@ -551,7 +555,8 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
 _LARGE = {"uids": 200, "truncation": 400, "pixel_length": 20, "element_length": 20,
           "nesting": 3, "deflate": 4, "oversize": 4, "fuzz_datasets": 100000,
           "fuzz_protocol": 10000, "admission": 5, "tls": 5, "idle_flood": 40, "disk_full": 5,
-          "crash": 1000, "destination_down": 20, "serial_faults": 6}
+          "crash": 1000, "destination_down": 20, "serial_faults": 6,
+          "tls_names": 5, "ae_squatting": 20, "compressed": 20, "pixel_layouts": 20}
 
 
 def run_hardening_bench(args: argparse.Namespace) -> int:
@@ -577,12 +582,14 @@ def run_hardening_bench(args: argparse.Namespace) -> int:
 
 def add_hardening_bench_parser(kinds: argparse._SubParsersAction) -> None:
     from .bench_faults import FAULT_ITEMS
+    from .bench_network import NETWORK_ITEMS
 
     p = kinds.add_parser("hardening", help="hostile DICOM, admission, TLS, floods, disk full, "
-                                                "crashes, faults, soak")
+                                                "crashes, faults, soak, TLS names, AE "
+                                                "squatting, compressed syntaxes, pixel layouts")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--only", type=lambda s: s.split(","),
-                   help=f"items (of {', '.join(ITEMS + FAULT_ITEMS)})")
+                   help=f"items (of {', '.join(ITEMS + FAULT_ITEMS + NETWORK_ITEMS)})")
     p.add_argument("--fuzz", type=int, help="mutation-fuzzed datasets (default 100000)")
     p.add_argument("--soak", type=float, metavar="MINUTES",
                    help="soak the service: a frame a second, a malformed input a minute (only "

@@ -17,13 +17,15 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
+from pydicom.dataset import Dataset
 from pydicom.filebase import DicomBytesIO
 from pydicom.filewriter import write_dataset
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, generate_uid
 
 from .frames import XA_IMAGE_STORAGE, Frame, encode_frame
 
-__all__ = ["RawAssociation", "Dropped", "frame_dataset_bytes", "dataset_bytes", "uid_cases",
+__all__ = ["RawAssociation", "Dropped", "frame_dataset_bytes", "dataset_bytes", "wire_bytes",
+           "noise_frame", "uid_cases",
            "truncations", "pixel_length_cases", "element_length_cases", "nested_sequence",
            "deflate_bomb", "mutations", "malformed_pdus", "associate_rq", "pdata", "DEFLATED"]
 
@@ -209,26 +211,34 @@ class RawAssociation:
 
 # -- datasets ----------------------------------------------------------------------------
 
+def noise_frame(seed: int = 0, size: int = 32, sop_instance_uid: str | None = None) -> Frame:
+    """A valid 12-bit XA frame of noise with its geometry."""
+    rng = np.random.default_rng(seed)
+    return Frame(pixels=rng.integers(0, 4000, (size, size)).astype(np.uint16),
+                 imager_pixel_spacing_mm=(0.3, 0.3), primary_angle_deg=-30.0,
+                 secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
+                 acquisition_datetime=dt.datetime.now(dt.timezone.utc), patient_id="P-1",
+                 laterality="R", bits_stored=12,
+                 sop_instance_uid=sop_instance_uid or generate_uid())
+
+
 def frame_dataset_bytes(seed: int = 0, size: int = 32, explicit: bool = True,
                         sop_instance_uid: str | None = None) -> tuple[bytes, str]:
     """A valid XA frame's dataset (no file meta) as sent on the wire, and its SOP Instance UID."""
-    rng = np.random.default_rng(seed)
-    uid = sop_instance_uid or generate_uid()
-    frame = Frame(pixels=rng.integers(0, 4000, (size, size)).astype(np.uint16),
-                  imager_pixel_spacing_mm=(0.3, 0.3), primary_angle_deg=-30.0,
-                  secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
-                  acquisition_datetime=dt.datetime.now(dt.timezone.utc), patient_id="P-1",
-                  laterality="R", bits_stored=12, sop_instance_uid=uid)
-    return dataset_bytes(frame, explicit), uid
+    frame = noise_frame(seed, size, sop_instance_uid)
+    return dataset_bytes(frame, explicit), frame.sop_instance_uid
 
 
 def dataset_bytes(frame: Frame, explicit: bool = True) -> bytes:
     """``frame`` encoded as a C-STORE carries it: the dataset without file meta."""
-    ds = encode_frame(frame)
-    del ds.file_meta
+    return wire_bytes(encode_frame(frame), explicit)
+
+
+def wire_bytes(ds: Dataset, explicit: bool = True) -> bytes:
+    """``ds`` as a C-STORE carries it (little endian, without its file meta)."""
     buffer = DicomBytesIO()
     buffer.is_little_endian, buffer.is_implicit_VR = True, not explicit
-    write_dataset(buffer, ds)
+    write_dataset(buffer, ds)  # the file meta (group 0002) is not a dataset element
     return buffer.getvalue()
 
 

@@ -52,7 +52,7 @@ class _ClientSocket(ssl.SSLSocket):
         except ssl.SSLError as exc:
             context.handshake_error = getattr(exc, "verify_message", "") or str(exc)
             if isinstance(exc, PinMismatch):
-                context.handshake_error = str(exc)
+                context.handshake_error = exc.args[0]
                 self.close()
             raise
 
