@@ -7,8 +7,9 @@ proposed and counted.
 from __future__ import annotations
 
 import numpy as np
+import pydicom
 import pytest
-from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless
+from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless, RLELossless
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
 
@@ -16,7 +17,9 @@ from service.audit import AuditLog, read_audit
 from service.compressed import (ENCODERS, NEAR_LOSSLESS_DEVIATION, compress, encoders_available,
                                 storescu)
 from service.config import config_from_dict
+from service.dataset_guard import DatasetError, check_dataset_bytes
 from service.frames import decode_frame, encode_frame
+from service.hostile import wire_bytes
 from service.scp import DicomReceiver
 from service.spool import Spool
 from service.status import Metrics
@@ -70,3 +73,16 @@ def test_a_refused_syntax_is_audited_with_the_proposal_and_counted(scp):
                                        "transfer_syntaxes": [JPEG2000Lossless]}]
     assert refused[0]["calling_ae"] == "CARM1" and refused[0]["peer"] == "127.0.0.1"
     assert metrics.snapshot()["contexts_rejected"] == 1
+
+
+def test_the_byte_guard_walks_fragments_and_refuses_every_cut_inside_them(tmp_path):
+    plain = tmp_path / "plain.dcm"
+    encode_frame(small_frame()).save_as(plain, enforce_file_format=True)
+    data = wire_bytes(pydicom.dcmread(compress(plain, RLELossless, tmp_path / "rle.dcm")))
+    check_dataset_bytes(data, True, encapsulated=True)
+    with pytest.raises(DatasetError, match="undefined length"):
+        check_dataset_bytes(data, True)  # compressed pixel data on an uncompressed context
+    pixel = data.index(b"\xe0\x7f\x10\x00")
+    for cut in range(pixel + 12, len(data), 7):  # inside the fragments or their delimiter
+        with pytest.raises(DatasetError):
+            check_dataset_bytes(data[:cut], True, encapsulated=True)
