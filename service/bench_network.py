@@ -132,9 +132,11 @@ def ae_squatting(folder: Path, count: int, squatters: int = 6) -> Tally:
             for n in range(squatters):
                 source = f"127.0.4.{1 + n}"
                 for title in ("CARM1", "CARM2", "CARM2"):
+                    assoc = RawAssociation(target.port, source=source, calling=title)
                     try:
-                        assoc = RawAssociation(target.port, source=source, calling=title).associate()
+                        assoc.associate()
                     except Dropped:
+                        assoc.close()  # as a real client does on A-ASSOCIATE-RJ
                         continue
                     held.append(assoc)
                     tally.count(title == "CARM1", f"CARM1 associated from {source}")
