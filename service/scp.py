@@ -1,9 +1,12 @@
 """The DICOM receiver (SCP): Verification and X-ray image storage, thin handlers.
 
 Associations are accepted only from the configured calling AE titles (and, if configured,
-source addresses) and only when they call our AE title; TLS (1.2 or newer, client
-certificates required) is optional. Connections, PDUs and message sizes are policed at the
-byte level by :mod:`service.wire` before pynetdicom sees them. The C-STORE handler only
+source addresses, and per :mod:`service.admission`) and only when they call our AE title;
+TLS (1.2 or newer, client certificates required) is optional. Images may come uncompressed,
+JPEG Lossless, JPEG-LS or RLE (those whose decoder is installed); an image context refused
+for its transfer syntax is audited (``context_rejected``) with the syntaxes proposed.
+Connections, PDUs and message sizes are policed at the byte level by :mod:`service.wire`
+before pynetdicom sees them. The C-STORE handler only
 validates, persists and queues: it checks the command (UIDs), the dataset's byte structure
 (:mod:`service.dataset_guard`, before pydicom parses it), then the instance (SOP class
 against the negotiated context, UIDs, transfer syntax, image attributes and pixel data length

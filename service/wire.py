@@ -22,7 +22,7 @@ wraps its server at the byte level, before any of that:
   certificates, association slots per address and in all, one kept for the bound C-arm)
   before pynetdicom negotiates; callers refused by AE title never take a slot.
 
-A violation sends an A-ABORT (or A-ASSOCIATE-RJ for the association limit), closes the
+A violation sends an A-ABORT (or A-ASSOCIATE-RJ when admission refuses), closes the
 connection and is audited; the server keeps serving.
 """
 
