@@ -23,11 +23,12 @@ def test_the_documented_example_loads_with_every_section():
 def test_environment_overrides_scalars_with_types(tmp_path):
     env = {"SLAMTKA_DICOM_PORT": "11999", "SLAMTKA_DICOM_TLS_ENABLED": "false",
            "SLAMTKA_DATA_DIR": str(tmp_path), "SLAMTKA_PIPELINE_MIN_VIEW_SEPARATION_DEG": "20",
-           "SLAMTKA_DICOM_ALLOWED_CALLING_AE_TITLES": "CARM_A, CARM_B", "SLAMTKA_UNRELATED": "x"}
+           "SLAMTKA_DICOM_ALLOWED_CALLING_AE_TITLES": "CARM_OR3, CARM_B", "SLAMTKA_UNRELATED": "x"}
     config = load_config(EXAMPLE, environ=env)
     assert config.dicom.port == 11999 and config.data_dir == tmp_path
     assert config.pipeline.min_view_separation_deg == 20.0
-    assert config.dicom.allowed_calling_ae_titles == ["CARM_A", "CARM_B"]
+    # (the example binds CARM_OR3 to its address: a binding must name an allowed title)
+    assert config.dicom.allowed_calling_ae_titles == ["CARM_OR3", "CARM_B"]
 
 
 def test_relative_paths_are_relative_to_the_file(tmp_path):
