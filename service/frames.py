@@ -226,20 +226,28 @@ def _required(ds: Dataset, keyword: str):
     return value
 
 
-def _integer(ds: Dataset, keyword: str, default: int | None = None) -> int:
-    """An integer attribute (required unless it has a default); junk names the attribute."""
+def _optional_integer(ds: Dataset, keyword: str) -> int | None:
+    """An integer attribute, None if absent or empty; junk names the attribute."""
     try:
         value = ds.get(keyword)  # a received value is converted on access, and may fail there
     except (TypeError, ValueError) as exc:
         raise FrameError(f"{keyword} cannot be read ({exc})") from None
     if value is None or value == "":
-        if default is None:
-            raise FrameError(f"{keyword} is missing")
-        return default
+        return None
     try:
         return int(value)
     except (TypeError, ValueError):
         raise FrameError(f"{keyword} {str(value)!r} is not an integer") from None
+
+
+def _integer(ds: Dataset, keyword: str, default: int | None = None) -> int:
+    """An integer attribute (required unless it has a default)."""
+    value = _optional_integer(ds, keyword)
+    if value is None:
+        if default is None:
+            raise FrameError(f"{keyword} is missing")
+        return default
+    return value
 
 
 def _optional_float(ds: Dataset, keyword: str, low: float, high: float) -> float | None:
@@ -317,8 +325,7 @@ def _inverted(ds: Dataset, photometric: str) -> bool:
     how to display, so they decide only without it. MONOCHROME1 and INVERSE are one
     inversion, not two: DX pairs them to say the same thing.
     """
-    sign = _integer(ds, "PixelIntensityRelationshipSign", 0) if ds.get(
-        "PixelIntensityRelationshipSign") not in (None, "") else None
+    sign = _optional_integer(ds, "PixelIntensityRelationshipSign")
     if sign not in (None, 1, -1):
         raise FrameError(f"PixelIntensityRelationshipSign {sign} is not +1 or -1")
     shape = str(ds.get("PresentationLUTShape", "") or "")
