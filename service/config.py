@@ -200,6 +200,9 @@ class PipelineConfig:
     min_view_separation_deg: float = 15.0
     max_views: int = 6
     manual_contours_dir: Path | None = None  # contour documents drawn by hand, by SOP UID
+    # A view of a new DICOM series starts a new pin set (for C-arms that open a series per
+    # pin placement); off by default: the pins themselves are compared.
+    new_set_on_new_series: bool = False
 
     def check(self, where: str) -> None:
         _check_range(f"{where}.min_view_separation_deg", self.min_view_separation_deg, 1.0, 90.0)

@@ -42,7 +42,7 @@ from pynetdicom.sop_class import (
 
 from drivers.carm_sim import MotionScript, SimulatedCArm
 from drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles, initial_view_poses
-from solver.geometry import rotation_about
+from solver.geometry import Pose, rotation_about
 from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, default_camera, simulate_case
@@ -108,6 +108,8 @@ class TheatreCase:
     frames: list[Frame]
     outlines: list[dict[str, np.ndarray]]  # true outlines per view, raw pixels (the truth)
     send_started: list[float] = field(default_factory=list)  # monotonic, before each C-STORE
+    truth_T_tibia_pin: list = field(default_factory=list)  # the pins as placed (Pose)
+    setup: PatientSetup | None = None  # how the patient really lies
 
 
 def _free_port() -> int:
@@ -209,12 +211,39 @@ port = {display_port}
         rng = np.random.default_rng(seed)
         sim = simulate_case(self.plan, SimulationConfig(view_angles_deg=(0.0,), seed=seed))
         setup = self._true_setup(rng)
+        return self._render(index, generate_uid(prefix=None), list(sim.truth_T_tibia_pin), setup,
+                            rng, sim.truth_ctr_deg, sim.truth_str_deg)
+
+    def repin(self, case: TheatreCase, axis: str, angle_deg: float) -> TheatreCase:
+        """The surgeon moves the pins: both turned by ``angle_deg`` about the anatomical
+        ``axis`` ("ml": medio-lateral, changes STR; "ap": antero-posterior, changes CTR)
+        through their midpoint; new views of the same study, the patient lying as before."""
+        from solver.measurement import fit_resection_plane
+
+        lm = self.plan.landmarks
+        T_tibia_anat = lm.T_tibia_anat()
+        direction = T_tibia_anat.R @ {"ml": np.array([1.0, 0.0, 0.0]),
+                                      "ap": np.array([0.0, 1.0, 0.0])}[axis]
+        half = 0.5 * self.plan.pin_length()
+        centre = np.mean([T.apply(np.array([0.0, 0.0, half])) for T in case.truth_T_tibia_pin], 0)
+        R = rotation_about(direction, np.radians(angle_deg))
+        turn = Pose(R, centre - R @ centre)
+        pins = [turn @ T for T in case.truth_T_tibia_pin]
+        plane = fit_resection_plane(pins, self.plan.pin_length(), lm)
+        rng = np.random.default_rng([self.seed, case.index, int(round(angle_deg * 10)) + 1000,
+                                     len(axis) + ord(axis[0])])
+        return self._render(case.index, case.study_uid, pins, case.setup, rng,
+                            float(np.degrees(plane.ctr)), float(np.degrees(plane.str_)))
+
+    def _render(self, index: int, study: str, pins: list, setup: PatientSetup,
+                rng: np.random.Generator, ctr_deg: float, str_deg: float) -> TheatreCase:
+        """Render every scripted view of pins ``pins`` with the patient lying as ``setup``."""
         nominal = PatientSetup(self.plan.landmarks.T_tibia_anat())
-        study, series = generate_uid(prefix=None), generate_uid(prefix=None)
+        series = generate_uid(prefix=None)
         frames, outlines = [], []
         for k, joints in enumerate(self.script.views, start=1):
             (T_cam_tibia,), _ = initial_view_poses(self.kinematics, [joints], setup)
-            image = render_radiograph(self.plan, T_cam_tibia, sim.truth_T_tibia_pin, self.camera,
+            image = render_radiograph(self.plan, T_cam_tibia, pins, self.camera,
                                       XRayParams(distortion=self.distortion), rng, self._scene)
             primary, secondary = dicom_angles(self.kinematics, joints, nominal)
             spacing = self._pixel_spacing_mm(joints)
@@ -226,7 +255,8 @@ port = {display_port}
                 series_uid=series, laterality="R", bits_stored=image.bits_stored,
                 instance_number=k))
             outlines.append(image.silhouettes)
-        return TheatreCase(index, study, sim.truth_ctr_deg, sim.truth_str_deg, frames, outlines)
+        return TheatreCase(index, study, ctr_deg, str_deg, frames, outlines,
+                           truth_T_tibia_pin=pins, setup=setup)
 
     def _pixel_spacing_mm(self, joints: JointReading) -> float:
         """Detector pixel size: the calibrated focal length is SID over the pixel pitch."""
@@ -315,7 +345,8 @@ port = {display_port}
         frames = [replace(f, study_uid=study, series_uid=series,
                           sop_instance_uid=generate_uid(prefix=None)) for f in case.frames]
         return TheatreCase(case.index, study, case.truth_ctr_deg, case.truth_str_deg, frames,
-                           case.outlines)
+                           case.outlines, truth_T_tibia_pin=case.truth_T_tibia_pin,
+                           setup=case.setup)
 
     def result_folder(self, case: TheatreCase) -> Path:
         """Where the service writes the run of all of ``case``'s views."""
