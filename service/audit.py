@@ -19,7 +19,10 @@ __all__ = ["AuditLog", "read_audit", "last_event", "EVENTS"]
 
 EVENTS = ("service_started", "service_stopped", "connection_refused", "association_rejected",
           "association_aborted", "received", "rejected", "duplicate", "view_unusable",
-          "case_triggered", "processed", "failed", "sent", "send_failed", "send_abandoned")
+          "case_triggered", "processed", "failed", "sent", "send_failed", "send_abandoned",
+          # the re-measurement loop (service.workflow, service.clock, service.sender)
+          "pin_check", "pin_set_started", "status_sent", "output_failed", "operator_request",
+          "clock_mismatch", "send_superseded")
 
 
 class AuditLog:

@@ -127,8 +127,8 @@ def patient_orientation(R_anat_cam: np.ndarray) -> tuple[str, str]:
 def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_uid: str,
              instance_number: int, orientation: tuple[str, str] | None,
              content_datetime: datetime, manufacturer: str = "slamtka",
-             institution: str = "", description: str = "slamtka contours and resection plane"
-             ) -> Dataset:
+             institution: str = "", description: str = "slamtka contours and resection plane",
+             series_number: int = SC_SERIES_NUMBER) -> Dataset:
     """A Secondary Capture instance of ``rgb`` in the study and patient of ``source`` (its
     header sanitised, :mod:`service.headers`); dated ``content_datetime`` (the run's), so
     the same run built again is the same object.
@@ -140,7 +140,7 @@ def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_
         ref_dataset=source, pixel_array=rgb, photometric_interpretation="RGB", bits_allocated=8,
         coordinate_system="PATIENT",
         patient_orientation=(orientation[0][0], orientation[1][0]) if orientation else ("A", "F"),
-        series_instance_uid=series_uid, series_number=SC_SERIES_NUMBER,
+        series_instance_uid=series_uid, series_number=series_number,
         sop_instance_uid=sop_instance_uid, instance_number=instance_number,
         manufacturer=manufacturer, laterality=image_laterality(source.get("Laterality")),
         series_description=description)

@@ -133,7 +133,8 @@ def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
              series_uid: str, sop_instance_uid: str, uid_for: Callable[[str], str],
              content_datetime: datetime, notes: list[tuple[str, str]] = (),
              manufacturer: str = "slamtka", institution: str = "",
-             device_name: str = "SLAMTKA") -> Dataset:
+             device_name: str = "SLAMTKA", series_number: int = SR_SERIES_NUMBER,
+             series_description: str = "slamtka resection plane") -> Dataset:
     """The Comprehensive 3D SR of result ``doc``, in the study of the ``evidence`` frames
     (their headers already sanitised, :mod:`service.headers`).
 
@@ -161,9 +162,9 @@ def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
             relationship_type=hd.sr.RelationshipTypeValues.CONTAINS))
     sr = hd.sr.Comprehensive3DSR(
         evidence=evidence, content=content, series_instance_uid=series_uid,
-        series_number=SR_SERIES_NUMBER, sop_instance_uid=sop_instance_uid, instance_number=1,
+        series_number=series_number, sop_instance_uid=sop_instance_uid, instance_number=1,
         manufacturer=manufacturer, institution_name=institution or None, is_complete=True,
-        series_description="slamtka resection plane")
+        series_description=series_description)
     scheme = Dataset()
     scheme.CodingSchemeDesignator = SCHEME
     scheme.CodingSchemeName = "slamtka measurement concepts"

@@ -23,9 +23,11 @@ from pydicom.dataset import Dataset
 from .dicom_sc import ScOverlay, build_sc, render_overlay
 from .dicom_sr import build_sr
 
-__all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SC_SERIES"]
+__all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
+           "STATUS_SERIES_NUMBER"]
 
-STATUS_SC_SERIES = "slamtka status"
+STATUS_SERIES = "slamtka status"  # the series description of every status SR and SC
+STATUS_SERIES_NUMBER = 9703
 
 
 @dataclass(frozen=True)
@@ -78,12 +80,14 @@ def build_status_objects(header: Dataset, pixels: np.ndarray | None, status: Sta
            "software": {"version": version}, "case": {"laterality": laterality}}
     sr = build_sr(doc, [header], None, series_uid=uid_for("sr-series"),
                   sop_instance_uid=uid_for("sr"), uid_for=uid_for, content_datetime=when,
-                  institution=institution,
+                  institution=institution, series_number=STATUS_SERIES_NUMBER,
+                  series_description=STATUS_SERIES,
                   notes=[("service_status", status.message), ("action", status.action)])
     image = np.zeros((512, 512), np.uint16) if pixels is None else pixels
     rgb = render_overlay(image, ScOverlay({}, text=["SLAMTKA: NOT MEASURED", status.message,
                                                    "Next: " + status.action]))
     sc = build_sc(header, rgb, series_uid=uid_for("sc-series"), sop_instance_uid=uid_for("sc"),
                   instance_number=1, orientation=None, content_datetime=when,
-                  institution=institution, description=STATUS_SC_SERIES)
+                  institution=institution, description=STATUS_SERIES,
+                  series_number=STATUS_SERIES_NUMBER)
     return sr, sc

@@ -48,6 +48,7 @@ from solver.plan import Plan
 from solver.simulate import SimulationConfig, default_camera, simulate_case
 
 from .cases import case_id_of, run_id_of
+from .display import STATUS_SERIES
 from .frames import Frame, encode_frame
 from .plans import PlanStore
 
@@ -110,6 +111,14 @@ class TheatreCase:
     send_started: list[float] = field(default_factory=list)  # monotonic, before each C-STORE
     truth_T_tibia_pin: list = field(default_factory=list)  # the pins as placed (Pose)
     setup: PatientSetup | None = None  # how the patient really lies
+
+
+def _evidence(sr: Dataset) -> set[str]:
+    """The SOP Instance UIDs an SR names as its evidence."""
+    return {item.ReferencedSOPInstanceUID
+            for study in sr.get("CurrentRequestedProcedureEvidenceSequence", [])
+            for series in study.ReferencedSeriesSequence
+            for item in series.ReferencedSOPSequence}
 
 
 def _free_port() -> int:
@@ -353,10 +362,14 @@ port = {display_port}
         run = run_id_of([f.sop_instance_uid for f in case.frames])
         return self.root / "data" / "output" / case_id_of(PATIENT_ID, case.study_uid, "R") / run
 
-    def wait_for_result(self, case: TheatreCase, timeout: float = 120.0) -> tuple[float, Dataset]:
-        """(arrival time, SR) of the case's structured report at the OR display."""
+    def wait_for_result(self, case: TheatreCase, timeout: float = 120.0,
+                        exact: bool = False) -> tuple[float, Dataset]:
+        """(arrival time, SR) of the case's measurement report at the OR display (status
+        reports aside); ``exact``: the report of a run of exactly ``case``'s frames."""
+        sops = {f.sop_instance_uid for f in case.frames} if exact else set()
         items = self.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid
-                                  and ds.Modality == "SR", timeout)
+                                  and ds.Modality == "SR" and ds.SeriesDescription != STATUS_SERIES
+                                  and (not sops or _evidence(ds) == sops), timeout)
         if not items:
             raise TimeoutError(f"no result for case {case.index} within {timeout:.0f} s")
         return items[0]
