@@ -33,6 +33,7 @@ from pathlib import Path
 from pydicom.uid import generate_uid
 
 from .bench_service import _angles_from_sr, _percentiles
+from .dicom_sr import CODES
 from .display import STATUS_SERIES
 from .theatre import Theatre, TheatreCase, _evidence, parse_angles
 
@@ -42,29 +43,26 @@ REPINS = (("none", 0.0), ("ml", 2.0), ("ml", -2.0), ("ml", 5.0), ("ml", -5.0),
           ("ap", 2.0), ("ap", -2.0), ("ap", 5.0), ("ap", -5.0))
 
 
-def _status_reports(theatre: Theatre, study_uid: str, after: float) -> list[tuple[float, object]]:
-    return [(t, ds) for t, ds in theatre.display.received
-            if t >= after and ds.StudyInstanceUID == study_uid and ds.Modality == "SR"
-            and ds.SeriesDescription == STATUS_SERIES]
-
-
 def _wait_status(theatre: Theatre, study_uid: str, after: float, timeout: float = 10.0
                  ) -> tuple[float, str] | None:
-    """(arrival, message) of the first status report of ``study_uid`` since ``after``."""
-    items = theatre.display.wait(lambda ds: ds.StudyInstanceUID == study_uid
-                                 and ds.Modality == "SR" and ds.SeriesDescription == STATUS_SERIES,
-                                 timeout,
-                                 count=len(_status_reports(theatre, study_uid, 0.0)) + 1)
-    fresh = [(t, ds) for t, ds in items if t >= after]
-    if not fresh:
-        return None
-    t, ds = fresh[0]
-    return t, _text_items(ds)
+    """(arrival, notes) of the first status report of ``study_uid`` arriving after ``after``
+    (monotonic), or None within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for t, ds in list(theatre.display.received):
+            if (t >= after and ds.StudyInstanceUID == study_uid and ds.Modality == "SR"
+                    and ds.SeriesDescription == STATUS_SERIES):
+                return t, _text_items(ds)
+        time.sleep(0.02)
+    return None
 
 
 def _text_items(ds) -> str:
+    """The report's notes in words (:data:`service.dicom_sr.CODES`), joined."""
+    notes = {CODES[k].value for k in ("reason", "action", "history", "service_status")}
     return " | ".join(str(item.TextValue) for item in ds.ContentSequence
-                      if getattr(item, "ValueType", "") == "TEXT")
+                      if getattr(item, "ValueType", "") == "TEXT"
+                      and item.ConceptNameCodeSequence[0].CodeValue in notes)
 
 
 def _placements(theatre: Theatre, case: TheatreCase) -> list[tuple[str, float, TheatreCase]]:
@@ -154,17 +152,16 @@ def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
 
     def run(situation: str, case: TheatreCase, n_views: int, keep_times: bool) -> None:
         case.frames = case.frames[:n_views]
-        sent = time.monotonic()
         theatre.acquire(case, keep_times=keep_times)
         start = case.send_started[-1]
-        if situation == "refused":
+        if situation.startswith("refused"):
             try:
                 arrived, sr = theatre.wait_for_result(case, timeout=30.0)
                 got = (arrived, _text_items(sr))
             except TimeoutError:
                 got = None
         else:
-            got = _wait_status(theatre, case.study_uid, sent, timeout=30.0)
+            got = _wait_status(theatre, case.study_uid, start, timeout=30.0)
         rows.append({"situation": situation, "latency_s": None if got is None else got[0] - start,
                      "message": None if got is None else got[1]})
 

@@ -70,8 +70,12 @@ def sanitised_header(ds: Dataset) -> Dataset:
 
 def stamp_dates(ds: Dataset, when: datetime,
                 keywords: tuple[str, ...] = ("InstanceCreation", "Content")) -> None:
-    """Set the ``<keyword>Date`` / ``<keyword>Time`` pairs of a built result to ``when`` (the
-    run's time) instead of the builder's clock, so that a run built again is the same object."""
+    """Set the ``<keyword>Date`` / ``<keyword>Time`` pairs of a built result, and the dates of
+    its contributing equipment, to ``when`` (the run's time) instead of the builder's clock,
+    so that a run built again is the same object."""
     for keyword in keywords:
         setattr(ds, f"{keyword}Date", when.strftime("%Y%m%d"))
         setattr(ds, f"{keyword}Time", when.strftime("%H%M%S.%f"))
+    for item in ds.get("ContributingEquipmentSequence", []):
+        if "ContributionDateTime" in item:
+            item.ContributionDateTime = when.strftime("%Y%m%d%H%M%S.%f")

@@ -45,8 +45,8 @@ log = logging.getLogger("slamtka.pinsets")
 # projected pin axis than this many times the set's own misfit (the same statistic in the
 # views the set was measured from, at their solved poses), but never less than the floor:
 # the misfit of unmoved pins seen again, measured in `bench workflow` (docs/workflow.md).
-PIN_NOISE_FACTOR = 4.0
-MIN_PIN_THRESHOLD_PX = 2.0
+PIN_NOISE_FACTOR = 3.0
+MIN_PIN_THRESHOLD_PX = 1.0
 
 
 def _pin_offset_px(uv_axis: np.ndarray, contour: np.ndarray) -> float:
