@@ -174,6 +174,11 @@ def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
                               primary_angle_deg=close.frames[0].primary_angle_deg + 5.0)
     run("views too close", close, 2, True)
     run("refused (two views, no plan)", variant(patient_id="NO-PLAN-2"), 2, False)
+    theatre.clock_offset_s = 1.0
+    try:
+        run("C-arm clock 1 s ahead of the encoders", variant(), 1, False)
+    finally:
+        theatre.clock_offset_s = 0.0
     return rows
 
 

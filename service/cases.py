@@ -114,7 +114,9 @@ class CaseAssembler:
         if stored is not None:
             pairing = ViewPairing.from_json(stored)
         else:
-            pairing = self.geometry.pair(frame)
+            taken = {v.pairing.encoder_reading["sequence"] for v in case.views.values()
+                     if v.pairing.encoder_reading is not None}
+            pairing = self.geometry.pair(frame, taken)
             self.spool.write_sidecar(entry, pairing.to_json())
         positioner = {"primary_angle_deg": frame.primary_angle_deg,
                       "secondary_angle_deg": frame.secondary_angle_deg,

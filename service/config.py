@@ -165,6 +165,9 @@ class CarmConfig:
     encoder_port: str = ""  # serial device; empty: no link, DICOM positioner angles only
     max_reading_age_s: float = 0.1
     angle_check_deg: float = 3.0  # encoder vs DICOM positioner beam direction
+    # How far (s) the C-arm's frame times may be off the encoder stream and still be
+    # corrected (service.clock); beyond, a view falls back to its positioner angles.
+    max_clock_offset_s: float = 2.0
     link: dict = field(default_factory=dict)
     kinematics: dict = field(default_factory=dict)
     setup: dict = field(default_factory=dict)
@@ -176,6 +179,7 @@ class CarmConfig:
         if self.calibration is None:
             raise ConfigError(f"{where}.calibration: the C-arm calibration file is required")
         _check_range(f"{where}.angle_check_deg", self.angle_check_deg, 0.1, 45.0)
+        _check_range(f"{where}.max_clock_offset_s", self.max_clock_offset_s, 0.0, 60.0)
         for key, parse in (("link", LinkConfig.from_config),
                            ("kinematics", CArmKinematics.from_config)):
             try:

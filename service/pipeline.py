@@ -330,6 +330,8 @@ class Pipeline:
             recorder.encoder(item.view_id, view.pairing.initialisation, view.pairing.encoder_reading)
             if view.pairing.angle_check and view.pairing.angle_check.get("status") == "disagrees":
                 reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")
+            if view.pairing.clock is not None:
+                reasons.append(f"{item.view_id}: {view.pairing.clock['message']}")
             items.append(item)
         return items
 
@@ -423,7 +425,8 @@ class Pipeline:
                 "acquisition_datetime": None if when is None else when.isoformat(),
                 "positioner": view.positioner, "initialisation": view.pairing.initialisation,
                 "encoder_reading": view.pairing.encoder_reading,
-                "angle_check": view.pairing.angle_check, "contours": contours, "used": used,
+                "angle_check": view.pairing.angle_check, "clock": view.pairing.clock,
+                "contours": contours, "used": used,
                 "problem": left_out or view.pairing.problem}
 
     def _refused_sources(self, case: Case, first: int, reasons: list[str]) -> list[dict]:
@@ -522,10 +525,12 @@ class Pipeline:
                     "Next: " + advice(doc["reason"], min_separation_deg)]
         a, t, d = doc["angles"], doc["target"], doc["deviation"]
         change = change_line(m["previous"], doc) if m is not None else None
+        clock = [f"Note: {s['view_id']}: {s['clock']['message']}" for s in doc["sources"]
+                 if s.get("clock")]
         return [f"CTR {a['ctr_deg']:+.1f} deg (+-{a['ctr_sigma_deg']:.1f})  plan {t['ctr_deg']:+.1f}",
                 f"STR {a['str_deg']:+.1f} deg (+-{a['str_sigma_deg']:.1f})  plan {t['str_deg']:+.1f}",
                 f"{'WITHIN' if d['within_tolerance'] else 'OUTSIDE'} +-{t['tolerance_deg']:.0f} deg",
-                *head, *([change] if change else [])]
+                *head, *([change] if change else []), *clock]
 
     @staticmethod
     def _save(ds: Dataset, path: Path, kind: str, sop_class: str) -> OutgoingObject:

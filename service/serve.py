@@ -81,7 +81,8 @@ class Service:
         if config.carm.encoder_port:
             self.link = EncoderLink(config.carm.encoder_port, LinkConfig.from_config(config.carm.link))
         geometry = ViewGeometry(kinematics, config.carm.setup, self.link,
-                                config.carm.max_reading_age_s, config.carm.angle_check_deg)
+                                config.carm.max_reading_age_s, config.carm.angle_check_deg,
+                                config.carm.max_clock_offset_s)
         self.plans = PlanStore(config.plans)
         self.pipeline = Pipeline(self.spool, self.plans, self.calibration, geometry, config.output,
                                  manual_contours_dir=config.pipeline.manual_contours_dir,
@@ -220,6 +221,9 @@ class Service:
         if case is None:
             return
         view = case.views[entry.sop_instance_uid]
+        if view.pairing.clock is not None:
+            self.audit.record("clock_mismatch", case_id=case.case_id,
+                              sop_instance_uid=entry.sop_instance_uid, **view.pairing.clock)
         if not view.usable:
             # Kept in its case (a later reading or configuration may not help, but nothing
             # received is dropped); said at once, since no run will report it.

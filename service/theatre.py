@@ -26,7 +26,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +145,7 @@ class Theatre:
         self.config: Path | None = None
         self.port = 0
         self.environ: dict[str, str] = {}  # configuration overrides (SLAMTKA_...) for the service
+        self.clock_offset_s = 0.0  # how far the C-arm's frame times are off the host's clock
         self._scene: XRayScene | None = None
 
     # -- set-up ---------------------------------------------------------------------------
@@ -335,7 +336,8 @@ port = {display_port}
             if not keep_times:
                 if self.encoders:
                     time.sleep(max(0.0, self.exposure_time(k, after) - time.monotonic()))
-                frame.acquisition_datetime = datetime.now(timezone.utc)
+                frame.acquisition_datetime = datetime.now(timezone.utc) + timedelta(
+                    seconds=self.clock_offset_s)
             ds = encode_frame(frame)
             case.send_started.append(time.monotonic())
             assoc = ae.associate("127.0.0.1", self.port, ae_title=SERVICE_AE)

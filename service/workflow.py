@@ -116,9 +116,13 @@ class Workflow:
             current.series.append(view.series_uid)
         self.store.save(sets)
         if self.is_due(case):
-            return True
+            return True  # the run tells, its clock notes included
         if tell:
-            self.tell(case, view, self._waiting(case, current, why == "no plan"))
+            status = self._waiting(case, current, why == "no plan")
+            if view.pairing.clock is not None:  # said with what the set waits for
+                status = Status("clock", f"{view.pairing.clock['message']}. {status.message}",
+                                status.action)
+            self.tell(case, view, status)
         return False
 
     def _set_for(self, case: Case, view: View, sets: CasePinSets,
