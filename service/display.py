@@ -20,9 +20,6 @@ from typing import Callable
 import numpy as np
 from pydicom.dataset import Dataset
 
-from .dicom_sc import ScOverlay, build_sc, render_overlay
-from .dicom_sr import build_sr
-
 __all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
            "STATUS_SERIES_NUMBER"]
 
@@ -76,6 +73,9 @@ def build_status_objects(header: Dataset, pixels: np.ndarray | None, status: Sta
                          when: datetime, institution: str = "") -> tuple[Dataset, Dataset]:
     """The status SR and SC of one situation, in the study of ``header`` (sanitised);
     ``uid_for(what)`` names every UID, ``pixels`` is the view to draw on (blank when None)."""
+    from .dicom_sc import ScOverlay, build_sc, render_overlay  # highdicom, OpenCV: not for
+    from .dicom_sr import build_sr  # `slamtka status`, which imports this module's neighbours
+
     doc = {"status": "not_measured", "reason": status.message, "inputs": None,
            "software": {"version": version}, "case": {"laterality": laterality}}
     sr = build_sr(doc, [header], None, series_uid=uid_for("sr-series"),

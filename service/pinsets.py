@@ -37,7 +37,7 @@ from solver.geometry import Pose
 from .spool import write_json_atomic
 
 __all__ = ["pin_disagreement_px", "PinSet", "CasePinSets", "PinSetStore",
-           "PIN_NOISE_FACTOR", "MIN_PIN_THRESHOLD_PX"]
+           "PIN_NOISE_FACTOR", "MIN_PIN_THRESHOLD_PX", "NO_CONTOURS"]
 
 log = logging.getLogger("slamtka.pinsets")
 
@@ -47,6 +47,8 @@ log = logging.getLogger("slamtka.pinsets")
 # the misfit of unmoved pins seen again, measured in `bench workflow` (docs/workflow.md).
 PIN_NOISE_FACTOR = 3.0
 MIN_PIN_THRESHOLD_PX = 1.0
+# How a view's contour failure begins: such a view (no pins found) joins no set.
+NO_CONTOURS = "contours could not be extracted"
 
 
 def _pin_offset_px(uv_axis: np.ndarray, contour: np.ndarray) -> float:

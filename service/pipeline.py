@@ -42,7 +42,7 @@ from .dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
 from .display import advice, change_line
 from .frames import Frame, decode_frame, encode_frame
 from .headers import sanitised_header
-from .pinsets import pin_disagreement_px
+from .pinsets import NO_CONTOURS, pin_disagreement_px
 from .plans import PlanStore
 from .poses import ViewGeometry, planned_pins
 from .recording import CaseRecorder
@@ -165,7 +165,7 @@ class Pipeline:
                                          expected_pins=self._expected_pins(plan, T_cam_tibia, pins))
                 self._extracted[uid] = (found.as_dict(), "extracted")
             except ContourError as exc:
-                self._extracted[uid] = (None, f"contours could not be extracted ({exc})")
+                self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")
             while len(self._extracted) > _PREPARED_VIEWS:
                 self._extracted.popitem(last=False)
         return self._extracted[uid]
@@ -201,7 +201,7 @@ class Pipeline:
         if raw is None:
             return None, source
         if any(len(raw.get(label, ())) == 0 for label in ("pin1", "pin2")):
-            return None, "contours could not be extracted (fewer than two pins)"
+            return None, f"{NO_CONTOURS} (fewer than two pins)"
         return {label: self.calibration.undistort_points(points)
                 for label, points in raw.items()}, source
 

@@ -96,6 +96,9 @@ class Sender:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._probed: dict[str, float] = {}  # destination -> when it was last probed
+        # Held while a job file is removed by a newer run or rewritten after a failure, so a
+        # round still sending a superseded job cannot bring its file back.
+        self._jobs_lock = threading.Lock()
         self._probe_s = min(config.retry_initial_s, _MAX_PROBE_S)
         self._thread: threading.Thread | None = None
 
@@ -121,7 +124,8 @@ class Sender:
         """Drop the case's pending jobs of other (older) runs: a newer result replaces them."""
         for job in self.pending():
             if job.case_id == case_id and job.run_id != run_id:
-                (self.pending_dir / f"{job.id}.json").unlink(missing_ok=True)
+                with self._jobs_lock:
+                    (self.pending_dir / f"{job.id}.json").unlink(missing_ok=True)
                 self.audit.record("send_superseded", destination=job.destination,
                                   sop_instance_uid=job.sop_instance_uid, kind=job.kind,
                                   case_id=case_id, run_id=job.run_id, by_run_id=run_id)
@@ -174,6 +178,9 @@ class Sender:
         sent, done = 0, 0
         try:
             for job in jobs:
+                if not (self.pending_dir / f"{job.id}.json").is_file():
+                    done += 1  # superseded by a newer run of its case meanwhile: not sent
+                    continue
                 try:
                     ds = pydicom.dcmread(job.path)
                 except (OSError, pydicom.errors.InvalidDicomError) as exc:
@@ -218,6 +225,13 @@ class Sender:
             return 1
         job.attempts += 1
         job.last_error = error
+        with self._jobs_lock:
+            if not path.is_file():  # superseded by a newer run while it was being sent
+                return 0
+            return self._retry_or_abandon(job, path, error, fields, now)
+
+    def _retry_or_abandon(self, job: SendJob, path: Path, error: str, fields: dict,
+                          now: float) -> int:
         if job.attempts >= self.config.max_attempts:
             write_json_atomic(self.failed_dir / f"{job.id}.json", asdict(job))
             path.unlink(missing_ok=True)

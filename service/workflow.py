@@ -31,8 +31,8 @@ from .cases import Case, View, run_id_of
 from .display import Status, build_status_objects
 from .frames import decode_frame
 from .headers import sanitised_header
-from .pinsets import MIN_PIN_THRESHOLD_PX, PIN_NOISE_FACTOR, CasePinSets, PinSet, PinSetStore, \
-    pin_disagreement_px
+from .pinsets import (MIN_PIN_THRESHOLD_PX, NO_CONTOURS, PIN_NOISE_FACTOR, CasePinSets, PinSet,
+                      PinSetStore, pin_disagreement_px)
 from .sender import OutgoingObject, Sender
 from .spool import write_atomic, write_json_atomic
 
@@ -103,14 +103,14 @@ class Workflow:
                     "view again"))
             return False
         contours, why = self.pipeline.view_contours(case, view)
-        if contours is None and why != "no plan":
+        if contours is None and why.startswith(NO_CONTOURS):  # (else: no plan, calibration)
             sets.left_out[uid] = why
             self.store.save(sets)
             if tell:
                 self.tell(case, view, Status("no_pins", f"No pins seen in this view: {why}.",
                                              "take a view showing both pins and the tibia"))
             return False
-        current = self._set_for(case, view, sets, contours)
+        current = self._set_for(case, view, sets, contours)  # untested without contours
         current.views.append(uid)
         if view.series_uid not in current.series:
             current.series.append(view.series_uid)
