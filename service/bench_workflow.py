@@ -12,9 +12,10 @@ results C-STOREd to a loopback OR display).
    placements, or whose CTR/STR is more than ``--wrong-deg`` off the truth of its
    placement. Each re-pin should start a new set measured from its own two views.
 2. Stalled cases: a lone view, an unusable view (no geometry), no plan for the patient,
-   views too close in angle, a refusal (two views of a patient without a plan), and a
-   C-arm clock off the encoder stream: the time from the C-STORE of the view to the
-   arrival of the display's status (or refusal) report.
+   views too close in angle, a refusal (two views of a patient without a plan), encoder
+   and header angles 60 deg apart, and a C-arm clock 1 s ahead of the encoder stream: the
+   time from the C-STORE of the (last) view to the arrival of the display's status (or
+   refusal) report.
 
 Prints the figures and writes ``workflow.json``.
 """
@@ -174,6 +175,9 @@ def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
                               primary_angle_deg=close.frames[0].primary_angle_deg + 5.0)
     run("views too close", close, 2, True)
     run("refused (two views, no plan)", variant(patient_id="NO-PLAN-2"), 2, False)
+    askew = variant()
+    askew.frames = [replace(f, primary_angle_deg=f.primary_angle_deg + 60.0) for f in askew.frames]
+    run("encoder and header angles 60 deg apart", askew, 1, False)
     theatre.clock_offset_s = 1.0
     try:
         run("C-arm clock 1 s ahead of the encoders", variant(), 1, False)

@@ -9,9 +9,11 @@ these is a symptom of the offset (or of a wrong header); none may pass silently.
 :func:`review_pairing` looks, within ``max_offset_s`` of the frame's time, for readings of
 the arm standing still where the encoders agree with the header's positioner angles, and
 takes the nearest: the offset is corrected and the view keeps its encoder pose. When none
-is found (or the header has no angles to compare with), the view falls back to its header
-angles, or, without those either, cannot be used. Every outcome carries a ``clock`` note
-(status, offset, message) that is persisted with the pairing, audited and shown.
+is found, a view whose symptom is a clock's (arm moving, a shared reading, no reading) falls
+back to its header angles; one whose still, own reading simply disagrees with the header
+(a wrong header or wrong encoders: which, nothing tells) is not used; without header angles
+to compare with, neither can be used. Every outcome carries a ``clock`` note (status,
+offset, message) that is persisted with the pairing, audited and shown.
 """
 
 from __future__ import annotations
@@ -82,12 +84,18 @@ def review_pairing(link: EncoderLink, kinematics: CArmKinematics, setup: Patient
                 "status": "corrected", "offset_s": round(offset, 3), "symptoms": why,
                 "message": f"C-arm clock {offset:+.2f} s off the encoder stream ({why}): "
                            f"corrected, the reading at the corrected time is used"}, check)
-    if has_angles:
+    clock_like = reading is None or reading.moving or reading.sequence in taken
+    if has_angles and clock_like:
         return ClockCheck(None, {
             "status": "header_angles", "offset_s": None, "symptoms": why,
             "message": f"encoders unusable for this view ({why}; no reading within "
                        f"{max_offset_s:g} s agrees with the header): the header's positioner "
                        "angles are used"})
+    if has_angles:  # still, its own reading, and yet another beam: which one is wrong?
+        return ClockCheck(None, {
+            "status": "unusable", "offset_s": None, "symptoms": why,
+            "message": f"{why}, and no clock offset within {max_offset_s:g} s explains it: the "
+                       "view is not used (check the C-arm's angles and the encoder link)"})
     return ClockCheck(None, {
         "status": "unusable", "offset_s": None, "symptoms": why,
         "message": f"encoders unusable for this view ({why}) and the header has no "

@@ -53,7 +53,7 @@ def rendered(tmp_path_factory):
 class Loop:
     """A spool, cases, the pipeline and the workflow in ``root`` (no network)."""
 
-    def __init__(self, root, th: Theatre, calibration_path):
+    def __init__(self, root, th: Theatre, calibration_path, new_set_on_new_series=False):
         from solver.imaging.calibration import load_calibration
 
         from service.pipeline import Pipeline
@@ -68,7 +68,7 @@ class Loop:
         sender = Sender("SLAMTKA", [], SenderConfig(), root / "queue", self.audit)
         self.workflow = Workflow(self.pipeline, sender, self.audit, root,
                                  min_separation_deg=15.0, max_views=6,
-                                 new_set_on_new_series=False)
+                                 new_set_on_new_series=new_set_on_new_series)
 
     def add(self, frame, minutes: int = 0):
         frame = replace(frame, acquisition_datetime=_WHEN + dt.timedelta(minutes=minutes))
@@ -335,3 +335,39 @@ def test_dates_and_names_keep_their_valid_values():
 needs_dsrdump = pytest.mark.skipif(shutil.which("dsrdump") is None, reason="DCMTK not installed")
 test_turned_pins_start_a_new_set_measured_from_its_own_views = needs_dsrdump(
     test_turned_pins_start_a_new_set_measured_from_its_own_views)
+
+
+def test_a_configured_rule_starts_a_set_on_each_new_series(rendered, tmp_path):
+    th, calibration, case, again, _ = rendered
+    loop = Loop(tmp_path, th, calibration, new_set_on_new_series=True)
+    loop.add(case.frames[0])
+    c, due = loop.add(case.frames[1], 1)
+    assert due
+    loop.run(c)
+    assert again.frames[0].series_uid != case.frames[0].series_uid
+    c, due = loop.add(again.frames[0], 2)  # the same pins, but a new series: a new set
+    assert not due
+    sets = loop.workflow.store.get(c.case_id).sets
+    assert [s.started_by for s in sets] == ["first view", "new DICOM series"]
+    assert not loop.events("pin_check")  # the rule decided; no comparison needed
+
+
+def test_the_overlay_and_report_say_what_changed_since_the_previous_measurement():
+    from service.display import change_line
+    from service.pipeline import Pipeline
+
+    doc = {"status": "measured", "angles": {"ctr_deg": 0.4, "str_deg": 5.1, "ctr_sigma_deg": 0.1,
+                                            "str_sigma_deg": 0.2},
+           "target": {"ctr_deg": 0.0, "str_deg": 3.0, "tolerance_deg": 3.0},
+           "deviation": {"within_tolerance": True}, "sources": [],
+           "measurement": {"pin_set": 2, "number": 1, "started_by": "pins moved",
+                           "previous": {"run_id": "r1", "pin_set": 1, "number": 1,
+                                        "ctr_deg": 0.4, "str_deg": 6.7, "verdict": "fail"}}}
+    line = change_line(doc["measurement"]["previous"], doc)
+    assert line == "STR +6.7 -> +5.1, now within +-3 (was outside)"
+    lines = Pipeline._summary_lines(doc, 15.0)
+    assert "Pin set 2, measurement 1" in lines and line in lines
+    notes = dict(Pipeline._notes(doc, 15.0))
+    assert notes["history"].startswith("pin set 2, measurement 1 (pins moved); previous: pin set "
+                                       "1, measurement 1: CTR +0.4, STR +6.7 deg, fail")
+    assert change_line(None, doc) is None
