@@ -137,7 +137,11 @@ class Workflow:
         elif self.new_set_on_new_series and view.series_uid not in current.series:
             why = "new DICOM series"
         elif contours is not None:
-            why = self._pins_moved(case, view, current, contours)
+            try:
+                why = self._pins_moved(case, view, current, contours)
+            except (ValueError, KeyError, OSError) as exc:  # e.g. the plan was removed meanwhile
+                log.error("case %s: the pins of view %s could not be compared (%s); it joins "
+                          "pin set %d", case.case_id, view.sop_instance_uid, exc, current.number)
         if why is None:
             return current
         new = sets.start(why)
