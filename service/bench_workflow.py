@@ -44,15 +44,15 @@ REPINS = (("none", 0.0), ("ml", 2.0), ("ml", -2.0), ("ml", 5.0), ("ml", -5.0),
           ("ap", 2.0), ("ap", -2.0), ("ap", 5.0), ("ap", -5.0))
 
 
-def _wait_status(theatre: Theatre, study_uid: str, after: float, timeout: float = 10.0
-                 ) -> tuple[float, str] | None:
+def _wait_status(theatre: Theatre, study_uid: str, after: float, timeout: float = 10.0,
+                 saying: str = "") -> tuple[float, str] | None:
     """(arrival, notes) of the first status report of ``study_uid`` arriving after ``after``
-    (monotonic), or None within ``timeout``."""
+    (monotonic) whose notes contain ``saying``, or None within ``timeout``."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         for t, ds in list(theatre.display.received):
             if (t >= after and ds.StudyInstanceUID == study_uid and ds.Modality == "SR"
-                    and ds.SeriesDescription == STATUS_SERIES):
+                    and ds.SeriesDescription == STATUS_SERIES and saying in _text_items(ds)):
                 return t, _text_items(ds)
         time.sleep(0.02)
     return None
@@ -151,7 +151,8 @@ def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
 
     rows = []
 
-    def run(situation: str, case: TheatreCase, n_views: int, keep_times: bool) -> None:
+    def run(situation: str, case: TheatreCase, n_views: int, keep_times: bool,
+            saying: str) -> None:
         case.frames = case.frames[:n_views]
         theatre.acquire(case, keep_times=keep_times)
         start = case.send_started[-1]
@@ -162,25 +163,26 @@ def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
             except TimeoutError:
                 got = None
         else:
-            got = _wait_status(theatre, case.study_uid, start, timeout=30.0)
+            got = _wait_status(theatre, case.study_uid, start, timeout=30.0, saying=saying)
         rows.append({"situation": situation, "latency_s": None if got is None else got[0] - start,
                      "message": None if got is None else got[1]})
 
-    run("lone view", variant(), 1, False)
+    run("lone view", variant(), 1, False, "one view so far")
     run("unusable view (no geometry)", variant(primary_angle_deg=None, secondary_angle_deg=None,
-                                               acquisition_datetime=long_ago), 1, True)
-    run("no plan for the patient", variant(patient_id="NO-PLAN-1"), 1, False)
+                                               acquisition_datetime=long_ago), 1, True,
+        "cannot be used")
+    run("no plan for the patient", variant(patient_id="NO-PLAN-1"), 1, False, "No plan")
     close = variant(acquisition_datetime=long_ago)
     close.frames[1] = replace(close.frames[0], sop_instance_uid=generate_uid(prefix=None),
                               primary_angle_deg=close.frames[0].primary_angle_deg + 5.0)
-    run("views too close", close, 2, True)
-    run("refused (two views, no plan)", variant(patient_id="NO-PLAN-2"), 2, False)
+    run("views too close", close, 2, True, "too close")
+    run("refused (two views, no plan)", variant(patient_id="NO-PLAN-2"), 2, False, "no plan")
     askew = variant()
     askew.frames = [replace(f, primary_angle_deg=f.primary_angle_deg + 60.0) for f in askew.frames]
-    run("encoder and header angles 60 deg apart", askew, 1, False)
+    run("encoder and header angles 60 deg apart", askew, 1, False, "not used")
     theatre.clock_offset_s = 1.0
     try:
-        run("C-arm clock 1 s ahead of the encoders", variant(), 1, False)
+        run("C-arm clock 1 s ahead of the encoders", variant(), 1, False, "C-arm clock")
     finally:
         theatre.clock_offset_s = 0.0
     return rows
@@ -198,7 +200,7 @@ def run_workflow_bench(args: argparse.Namespace) -> int:
     truth_of: dict[str, tuple[tuple[int, int], TheatreCase]] = {}
     rows: list[dict] = []
     try:
-        stalled = _stalled(theatre, cases[0])
+        stalled = _stalled(theatre, cases[0] if cases else theatre.make_case(0))
         for case in cases:
             case_rows = _repin_rows(theatre, case, truth_of)
             rows += case_rows
@@ -256,7 +258,7 @@ def run_workflow_bench(args: argparse.Namespace) -> int:
 def add_workflow_bench_parser(kinds: argparse._SubParsersAction) -> None:
     p = kinds.add_parser("workflow", help="the re-measurement loop: re-pinning, stalled cases")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--cases", type=int, default=10)
+    p.add_argument("--cases", type=int, default=10, help="re-pinned cases (0: stalled cases only)")
     p.add_argument("--views", type=parse_angles, default=(-30.0, 30.0), help="orbital angles, deg")
     p.add_argument("--hold-s", type=float, default=0.8, help="C-arm hold at each view, s")
     p.add_argument("--move-s", type=float, default=1.6, help="C-arm move between views, s")

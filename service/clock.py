@@ -69,6 +69,8 @@ def review_pairing(link: EncoderLink, kinematics: CArmKinematics, setup: Patient
     if has_angles and max_offset_s > 0:
         window = link.readings_between(when - timedelta(seconds=max_offset_s),
                                        when + timedelta(seconds=max_offset_s))
+        if reading is None and not window:
+            return None  # no stream around then at all (link down, an old frame): no clock
         fits = []
         for candidate in window:
             if candidate.moving or candidate.sequence in taken:
