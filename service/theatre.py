@@ -326,16 +326,19 @@ port = {display_port}
         n = np.ceil((after - boot - offset) / cycle)
         return boot + max(n, 0) * cycle + offset
 
-    def acquire(self, case: TheatreCase, keep_times: bool = False) -> None:
+    def acquire(self, case: TheatreCase, keep_times: bool = False,
+                views: list[int] | None = None) -> None:
         """Expose and send each view of ``case`` when the simulated C-arm holds at it
-        (``keep_times``: send at once, with the acquisition times the frames already carry)."""
+        (``keep_times``: send at once, with the acquisition times the frames already carry;
+        ``views``: the script's view each frame shows, default the frames' order)."""
         ae = AE(ae_title=CARM_AE)
         ae.add_requested_context(XRayAngiographicImageStorage)
         after = time.monotonic()
         for k, frame in enumerate(case.frames):
             if not keep_times:
                 if self.encoders:
-                    time.sleep(max(0.0, self.exposure_time(k, after) - time.monotonic()))
+                    view = k if views is None else views[k]
+                    time.sleep(max(0.0, self.exposure_time(view, after) - time.monotonic()))
                 frame.acquisition_datetime = datetime.now(timezone.utc) + timedelta(
                     seconds=self.clock_offset_s)
             ds = encode_frame(frame)

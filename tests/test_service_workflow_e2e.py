@@ -64,7 +64,7 @@ def test_a_lone_view_is_told_to_the_display_before_the_second_is_taken(theatre):
     assert sc.SeriesDescription == STATUS_SERIES and sc.BurnedInAnnotation == "YES"
 
     case.frames = [second]  # the second view: the measurement follows
-    th.acquire(case)
+    th.acquire(case, views=[1])
     case.frames = [first, second]
     _, result = th.wait_for_result(case, exact=True)
     assert _evidence(result) == {first.sop_instance_uid, second.sop_instance_uid}
