@@ -263,6 +263,13 @@ class ReadingHistory:
         with self._lock:
             return self._items[self._next - 1] if self._count else None
 
+    def between(self, t0_posix: float, t1_posix: float) -> list[tuple[float, EncoderReading]]:
+        """Every reading sampled in [t0, t1], as (POSIX seconds, reading), oldest first."""
+        with self._lock:
+            inside = np.flatnonzero((self._times >= t0_posix) & (self._times <= t1_posix))
+            found = [(float(self._times[k]), self._items[k]) for k in inside]
+        return sorted(found, key=lambda item: item[0])
+
     def nearest(self, t_posix: float, max_age_s: float) -> EncoderReading | None:
         """The reading sampled closest to ``t_posix``, if within ``max_age_s`` of it."""
         with self._lock:
@@ -411,6 +418,11 @@ class EncoderLink:
             raise ValueError("reading_at needs a timezone-aware time; DICOM times without an offset "
                              "are local to the modality and must be converted first")
         return self._history.nearest(t_utc.timestamp(), self._max_age(max_age_s))
+
+    def readings_between(self, t0_utc: datetime, t1_utc: datetime) -> list[EncoderReading]:
+        """Every reading sampled between two instants (timezone-aware), oldest first: what
+        the C-arm did around a frame whose clock may be off the encoder stream."""
+        return [r for _, r in self._history.between(t0_utc.timestamp(), t1_utc.timestamp())]
 
     def latest(self, max_age_s: float | None = None) -> EncoderReading | None:
         """The newest reading if it is not older than the maximum age, else None."""

@@ -18,8 +18,12 @@ from typing import Any, Callable, Iterator
 __all__ = ["AuditLog", "read_audit", "last_event", "EVENTS"]
 
 EVENTS = ("service_started", "service_stopped", "connection_refused", "association_rejected",
-          "association_aborted", "context_rejected", "received", "rejected", "duplicate", "view_unusable",
-          "case_triggered", "processed", "failed", "sent", "send_failed", "send_abandoned")
+          "association_aborted", "context_rejected", "received", "rejected", "duplicate",
+          "view_unusable", "case_triggered", "processed", "failed", "sent", "send_failed",
+          "send_abandoned",
+          # the re-measurement loop (service.workflow, service.clock, service.sender)
+          "pin_check", "pin_set_started", "status_sent", "output_failed", "operator_request",
+          "clock_mismatch", "send_superseded")
 
 
 class AuditLog:

@@ -27,6 +27,7 @@ from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
 from service.bench_service import add_service_bench_parser
 from service.bench_speed import add_speed_bench_parser
+from service.bench_workflow import add_workflow_bench_parser
 from solver.plan import Plan
 from solver.simulate import ROT_SD_PER_LEVEL_RAD, TRANS_SD_PER_LEVEL_MM, SimulationConfig, simulate_case
 from solver.slam import METHODS, SolverConfig, solve_joint
@@ -197,6 +198,7 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     add_link_bench(kinds)
     add_service_bench_parser(kinds)
     add_speed_bench_parser(kinds)
+    add_workflow_bench_parser(kinds)
     add_degenerate_bench_parser(kinds)
     add_imaging_bench_parser(kinds)
     add_hardening_bench_parser(kinds)

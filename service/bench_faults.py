@@ -50,6 +50,7 @@ from .frames import Frame
 from .hostile import (Dropped, RawAssociation, dataset_bytes, element_length_cases,
                       malformed_pdus, pixel_length_cases, truncations, with_uid)
 from .spool import entry_id
+from .display import STATUS_SERIES
 from .theatre import CARM_AE, PATIENT_ID, SERVICE_AE, ResultCollector, Theatre
 
 __all__ = ["FAULT_ITEMS", "run_fault_item", "crash", "destination_down", "serial_faults", "soak",
@@ -164,9 +165,11 @@ def _wait(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.2) 
 
 
 def _delivered(display: ResultCollector) -> dict[str, Counter]:
-    """How often each SOP Instance UID arrived at the display, per study."""
+    """How often each result object (status reports aside) arrived at the display, per study."""
     out: dict[str, Counter] = {}
     for _, ds in list(display.received):
+        if ds.get("SeriesDescription") == STATUS_SERIES:
+            continue
         out.setdefault(str(ds.StudyInstanceUID), Counter())[str(ds.SOPInstanceUID)] += 1
     return out
 

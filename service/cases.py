@@ -3,10 +3,11 @@
 Received instances are grouped into cases by Patient ID, Study Instance UID and laterality.
 Each frame is paired, once, with the C-arm geometry (the encoder reading at its acquisition
 time, else its DICOM positioner angles); the pairing is kept in the spool beside the instance
-so a restart rebuilds every case as it was. A view is usable when its geometry is known. The
-pipeline is due as soon as a case holds two usable views whose beams are at least
-``min_view_separation_deg`` apart, and again whenever a further usable view arrives; adding
-an instance already in the case changes nothing (idempotent by SOP Instance UID).
+so a restart rebuilds every case as it was. A view is usable when its geometry is known. A
+case is due (here, by geometry alone) as soon as it holds two usable views whose beams are at
+least ``min_view_separation_deg`` apart; the service asks the same of the views of the case's
+current pin set (:mod:`service.workflow`). Adding an instance already in the case changes
+nothing (idempotent by SOP Instance UID).
 
 A run is identified by the digest of the SOP Instance UIDs it uses (``run_id``), so a case
 that was already measured with exactly these views is never measured (or sent) twice.
@@ -114,7 +115,9 @@ class CaseAssembler:
         if stored is not None:
             pairing = ViewPairing.from_json(stored)
         else:
-            pairing = self.geometry.pair(frame)
+            taken = {v.pairing.encoder_reading["sequence"] for v in case.views.values()
+                     if v.pairing.encoder_reading is not None}
+            pairing = self.geometry.pair(frame, taken)
             self.spool.write_sidecar(entry, pairing.to_json())
         positioner = {"primary_angle_deg": frame.primary_angle_deg,
                       "secondary_angle_deg": frame.secondary_angle_deg,

@@ -223,6 +223,9 @@ class CarmConfig:
     encoder_port: str = ""  # serial device; empty: no link, DICOM positioner angles only
     max_reading_age_s: float = 0.1
     angle_check_deg: float = 3.0  # encoder vs DICOM positioner beam direction
+    # How far (s) the C-arm's frame times may be off the encoder stream and still be
+    # corrected (service.clock); beyond, a view falls back to its positioner angles.
+    max_clock_offset_s: float = 2.0
     link: dict = field(default_factory=dict)
     kinematics: dict = field(default_factory=dict)
     setup: dict = field(default_factory=dict)
@@ -234,6 +237,7 @@ class CarmConfig:
         if self.calibration is None:
             raise ConfigError(f"{where}.calibration: the C-arm calibration file is required")
         _check_range(f"{where}.angle_check_deg", self.angle_check_deg, 0.1, 45.0)
+        _check_range(f"{where}.max_clock_offset_s", self.max_clock_offset_s, 0.0, 60.0)
         for key, parse in (("link", LinkConfig.from_config),
                            ("kinematics", CArmKinematics.from_config)):
             try:
@@ -258,6 +262,9 @@ class PipelineConfig:
     min_view_separation_deg: float = 15.0
     max_views: int = 6
     manual_contours_dir: Path | None = None  # contour documents drawn by hand, by SOP UID
+    # A view of a new DICOM series starts a new pin set (for C-arms that open a series per
+    # pin placement); off by default: the pins themselves are compared.
+    new_set_on_new_series: bool = False
 
     def check(self, where: str) -> None:
         _check_range(f"{where}.min_view_separation_deg", self.min_view_separation_deg, 1.0, 90.0)

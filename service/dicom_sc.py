@@ -11,13 +11,16 @@ original image exactly. Colours: bone yellow, pin 1 cyan, pin 2 magenta, plane g
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import datetime
 
 import cv2
 import highdicom as hd
 import numpy as np
 from pydicom.dataset import Dataset
 
-__all__ = ["ScOverlay", "render_overlay", "build_sc", "patient_orientation", "SC_SERIES_NUMBER"]
+from .headers import image_laterality, stamp_dates
+
+__all__ = ["ScOverlay", "render_overlay", "wrap_text", "build_sc", "patient_orientation", "SC_SERIES_NUMBER"]
 
 SC_SERIES_NUMBER = 9702
 _COLOURS = {"bone": (255, 220, 0), "pin1": (0, 230, 255), "pin2": (255, 60, 255)}
@@ -54,6 +57,34 @@ def _dots(rgb: np.ndarray, points: np.ndarray, colour: tuple[int, int, int], rad
     rgb[mask > 0] = colour
 
 
+def wrap_text(lines: list[str], width_px: int, scale: int) -> list[str]:
+    """``lines`` broken at spaces so that none is wider than ``width_px`` as drawn (a word
+    longer than the width is cut into pieces): the overlay never loses text at the edge."""
+    def fits(text: str) -> bool:
+        (w, _), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, 3 * scale)
+        return w <= width_px
+
+    out: list[str] = []
+    for line in lines:
+        current = ""
+        for word in line.split():
+            while not fits(word) and len(word) > 1:  # longer than the width: cut it
+                cut = max(k for k in range(1, len(word)) if fits(word[:k]) or k == 1)
+                if current:
+                    out.append(current)
+                    current = ""
+                out.append(word[:cut])
+                word = word[cut:]
+            candidate = f"{current} {word}".strip()
+            if fits(candidate):
+                current = candidate
+            else:
+                out.append(current)
+                current = word
+        out.append(current)
+    return out
+
+
 def render_overlay(pixels: np.ndarray, overlay: ScOverlay) -> np.ndarray:
     """The annotated view as an (H, W, 3) uint8 RGB image."""
     grey = _window(pixels)
@@ -68,7 +99,7 @@ def render_overlay(pixels: np.ndarray, overlay: ScOverlay) -> np.ndarray:
     for label, axis in zip(("pin1", "pin2"), overlay.pin_axes_px):
         a, b = np.round(np.asarray(axis, float)).astype(int)
         cv2.line(rgb, tuple(map(int, a)), tuple(map(int, b)), _COLOURS[label], scale, cv2.LINE_AA)
-    for i, line in enumerate(overlay.text):
+    for i, line in enumerate(wrap_text(overlay.text, rgb.shape[1] - 20 * scale, scale)):
         origin = (10 * scale, (22 + 22 * i) * scale)
         cv2.putText(rgb, line, origin, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * scale, (0, 0, 0),
                     3 * scale, cv2.LINE_AA)
@@ -95,8 +126,12 @@ def patient_orientation(R_anat_cam: np.ndarray) -> tuple[str, str]:
 
 def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_uid: str,
              instance_number: int, orientation: tuple[str, str] | None,
-             manufacturer: str = "slamtka", institution: str = "") -> Dataset:
-    """A Secondary Capture instance of ``rgb`` in the study and patient of ``source``.
+             content_datetime: datetime, manufacturer: str = "slamtka",
+             institution: str = "", description: str = "slamtka contours and resection plane",
+             series_number: int = SC_SERIES_NUMBER) -> Dataset:
+    """A Secondary Capture instance of ``rgb`` in the study and patient of ``source`` (its
+    header sanitised, :mod:`service.headers`); dated ``content_datetime`` (the run's), so
+    the same run built again is the same object.
 
     ``orientation`` (from the solved or initial view pose) may be None when no pose is known:
     Patient Orientation is then left empty (type 2: unknown).
@@ -105,10 +140,10 @@ def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_
         ref_dataset=source, pixel_array=rgb, photometric_interpretation="RGB", bits_allocated=8,
         coordinate_system="PATIENT",
         patient_orientation=(orientation[0][0], orientation[1][0]) if orientation else ("A", "F"),
-        series_instance_uid=series_uid, series_number=SC_SERIES_NUMBER,
+        series_instance_uid=series_uid, series_number=series_number,
         sop_instance_uid=sop_instance_uid, instance_number=instance_number,
-        manufacturer=manufacturer, laterality=str(source.get("Laterality", "") or "") or None,
-        series_description="slamtka contours and resection plane")
+        manufacturer=manufacturer, laterality=image_laterality(source.get("Laterality")),
+        series_description=description)
     # highdicom takes single letters; DICOM allows the oblique combinations too.
     sc.PatientOrientation = list(orientation) if orientation else ""
     sc.BurnedInAnnotation = "YES"
@@ -120,4 +155,7 @@ def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_
     sc.SourceImageSequence = [reference]
     if institution:
         sc.InstitutionName = institution
+    stamp_dates(sc, content_datetime)
+    sc.DateOfSecondaryCapture = content_datetime.strftime("%Y%m%d")
+    sc.TimeOfSecondaryCapture = content_datetime.strftime("%H%M%S.%f")
     return sc

@@ -9,7 +9,14 @@ Content:
   evaluation;
 - one TID 1501 group per trocar pin: the angle between the pin axis and the tibial mechanical
   axis, inferred from the pin axis as a 3D polyline (tip to end);
-- for a refused measurement, one TID 1501 group stating "not measured" (no numbers).
+- for a refused measurement, one TID 1501 group stating "not measured" (no numbers);
+- notes in words at the root (TEXT items): why it was not measured and what to do, the
+  pin set and measurement number with the previous measurement (the re-measurement loop),
+  or, for a status report, what the service is waiting for.
+
+Every UID of the content (tracking identifiers) and its date and time derive from the run
+(``uid_for``, ``content_datetime``), so the same run built again after a crash is the same
+object, byte for byte, under its SOP Instance UID.
 
 Coordinates are in the tibia (plan) frame, mm; its Frame of Reference UID is derived from the
 plan's mesh digest, so every result on the same plan shares it. CTR/STR have no standard
@@ -20,6 +27,8 @@ Identification Sequence. Sign convention: CTR positive = varus, STR positive = p
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import datetime
+from typing import Callable
 
 import highdicom as hd
 import numpy as np
@@ -27,6 +36,8 @@ from pydicom.dataset import Dataset
 from pydicom.sr.codedict import codes
 from pydicom.sr.coding import Code
 from pydicom.uid import generate_uid
+
+from .headers import stamp_dates
 
 __all__ = ["SrGeometry", "build_sr", "tibia_frame_of_reference_uid", "CODES", "SR_SERIES_NUMBER"]
 
@@ -46,6 +57,10 @@ CODES = {
     "not_measured": Code("NOTMEASURED", SCHEME, "Not measured"),
     "within": Code("INTOL", SCHEME, "Within plan tolerance"),
     "algorithm": Code("SLAMTKA", SCHEME, "Joint C-arm pose and pin estimation (SLAM-TKA)"),
+    "reason": Code("NMREASON", SCHEME, "Reason not measured"),
+    "action": Code("NEXTSTEP", SCHEME, "What to do next"),
+    "history": Code("MHISTORY", SCHEME, "Measurement history"),
+    "service_status": Code("SVCSTATUS", SCHEME, "Measurement service status"),
 }
 _SD = Code("386136009", "SCT", "Standard Deviation")
 _YES, _NO = Code("373066001", "SCT", "Yes"), Code("373067005", "SCT", "No")
@@ -77,8 +92,9 @@ def _measurement(name: Code, value: float, derivation: Code | None = None,
 
 
 def _groups(doc: dict, geometry: SrGeometry | None, algorithm: hd.sr.AlgorithmIdentification,
-            site: hd.sr.FindingSite) -> list:
-    tracking = lambda text: hd.sr.TrackingIdentifier(uid=generate_uid(), identifier=text)  # noqa: E731
+            site: hd.sr.FindingSite, uid_for: Callable[[str], str]) -> list:
+    tracking = lambda text: hd.sr.TrackingIdentifier(  # noqa: E731
+        uid=uid_for(f"tracking/{text}"), identifier=text)
     if doc["status"] != "measured" or geometry is None:
         return [hd.sr.MeasurementsAndQualitativeEvaluations(
             tracking_identifier=tracking("Resection plane"), finding_type=CODES["plane"],
@@ -114,9 +130,16 @@ def _groups(doc: dict, geometry: SrGeometry | None, algorithm: hd.sr.AlgorithmId
 
 
 def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
-             series_uid: str, sop_instance_uid: str, manufacturer: str = "slamtka",
-             institution: str = "", device_name: str = "SLAMTKA") -> Dataset:
-    """The Comprehensive 3D SR of result ``doc``, in the study of the ``evidence`` frames."""
+             series_uid: str, sop_instance_uid: str, uid_for: Callable[[str], str],
+             content_datetime: datetime, notes: list[tuple[str, str]] = (),
+             manufacturer: str = "slamtka", institution: str = "",
+             device_name: str = "SLAMTKA", series_number: int = SR_SERIES_NUMBER,
+             series_description: str = "slamtka resection plane") -> Dataset:
+    """The Comprehensive 3D SR of result ``doc``, in the study of the ``evidence`` frames
+    (their headers already sanitised, :mod:`service.headers`).
+
+    ``uid_for(what)`` gives the run's UID for ``what`` (tracking identifiers);
+    ``notes``: (key of :data:`CODES`, text) pairs added as TEXT items to the report."""
     side = doc["inputs"]["plan"]["side"] if doc.get("inputs") else (
         {"L": "left", "R": "right"}.get(doc["case"]["laterality"] or "", None))
     site = hd.sr.FindingSite(anatomic_location=_TIBIA,
@@ -131,15 +154,21 @@ def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
     report = hd.sr.MeasurementReport(
         observation_context=hd.sr.ObservationContext(observer_device_context=observer),
         procedure_reported=_PROCEDURE,
-        imaging_measurements=_groups(doc, geometry, algorithm, site))
+        imaging_measurements=_groups(doc, geometry, algorithm, site, uid_for))
+    content = report[0]
+    for key, text in notes:
+        content.ContentSequence.append(hd.sr.TextContentItem(
+            name=CODES[key], value=text[:1024],
+            relationship_type=hd.sr.RelationshipTypeValues.CONTAINS))
     sr = hd.sr.Comprehensive3DSR(
-        evidence=evidence, content=report[0], series_instance_uid=series_uid,
-        series_number=SR_SERIES_NUMBER, sop_instance_uid=sop_instance_uid, instance_number=1,
+        evidence=evidence, content=content, series_instance_uid=series_uid,
+        series_number=series_number, sop_instance_uid=sop_instance_uid, instance_number=1,
         manufacturer=manufacturer, institution_name=institution or None, is_complete=True,
-        series_description="slamtka resection plane")
+        series_description=series_description)
     scheme = Dataset()
     scheme.CodingSchemeDesignator = SCHEME
     scheme.CodingSchemeName = "slamtka measurement concepts"
     scheme.CodingSchemeResponsibleOrganization = "slamtka project"
     sr.CodingSchemeIdentificationSequence = [scheme]
+    stamp_dates(sr, content_datetime)
     return sr

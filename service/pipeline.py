@@ -39,7 +39,10 @@ from solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
 from .cases import Case, View, run_id_of
 from .dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
 from .dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from .display import advice, change_line
 from .frames import Frame, decode_frame, encode_frame
+from .headers import sanitised_header
+from .pinsets import NO_CONTOURS, pin_disagreement_px
 from .plans import PlanStore
 from .poses import ViewGeometry, planned_pins
 from .recording import CaseRecorder
@@ -119,16 +122,20 @@ class Pipeline:
                                     acquisition_datetime=datetime.now(timezone.utc)))
         doc = {"status": "not_measured", "software": {"version": "warm-up"}, "inputs": None,
                "case": {"laterality": None}}
+        now = datetime.now(timezone.utc)
         build_sr(doc, [source], None, series_uid=generate_uid(prefix=None),
-                 sop_instance_uid=generate_uid(prefix=None))
+                 sop_instance_uid=generate_uid(prefix=None), content_datetime=now,
+                 uid_for=lambda what: generate_uid(prefix=None))
         build_sc(source, np.zeros((8, 8, 3), np.uint8), series_uid=generate_uid(prefix=None),
-                 sop_instance_uid=generate_uid(prefix=None), instance_number=1, orientation=None)
+                 sop_instance_uid=generate_uid(prefix=None), instance_number=1, orientation=None,
+                 content_datetime=now)
 
-    def run_folder(self, case: Case, views: list[View]) -> Path:
-        return self.output_root / case.case_id / run_id_of([v.sop_instance_uid for v in views])
+    def run_folder(self, case: Case, views: list[View], run_id: str | None = None) -> Path:
+        return self.output_root / case.case_id / (run_id or run_id_of(
+            [v.sop_instance_uid for v in views]))
 
-    def already_done(self, case: Case, views: list[View]) -> bool:
-        return (self.run_folder(case, views) / "result.json").is_file()
+    def already_done(self, case: Case, views: list[View], run_id: str | None = None) -> bool:
+        return (self.run_folder(case, views, run_id) / "result.json").is_file()
 
     # -- stages ---------------------------------------------------------------------------
     def _manual_contours(self) -> dict[str, dict[str, np.ndarray]]:
@@ -158,7 +165,7 @@ class Pipeline:
                                          expected_pins=self._expected_pins(plan, T_cam_tibia, pins))
                 self._extracted[uid] = (found.as_dict(), "extracted")
             except ContourError as exc:
-                self._extracted[uid] = (None, f"contours could not be extracted ({exc})")
+                self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")
             while len(self._extracted) > _PREPARED_VIEWS:
                 self._extracted.popitem(last=False)
         return self._extracted[uid]
@@ -177,6 +184,27 @@ class Pipeline:
         if self.calibration.check_frame(frame) is None:
             self._extract(plan, view, frame, T, self._planned_pins(plan))
 
+    def view_contours(self, case: Case, view: View) -> tuple[dict[str, np.ndarray] | None, str]:
+        """A view's contours as a run would use them (undistorted pixels) and their source,
+        or None and why ("no plan" when the patient has none: nothing can be extracted)."""
+        manual = self._manual_contours().get(view.sop_instance_uid)
+        if manual is not None:
+            raw, source = manual, "manual"
+        else:
+            try:
+                self.plans.find(case.patient_id, case.laterality)
+            except ValueError:
+                return None, "no plan"
+            self.prepare(case, view)
+            raw, source = self._extracted.get(view.sop_instance_uid, (
+                None, "the frame does not match the C-arm calibration"))
+        if raw is None:
+            return None, source
+        if any(len(raw.get(label, ())) == 0 for label in ("pin1", "pin2")):
+            return None, f"{NO_CONTOURS} (fewer than two pins)"
+        return {label: self.calibration.undistort_points(points)
+                for label, points in raw.items()}, source
+
     def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
         """The planned pins of ``plan``, kept for the plan last asked about (the object itself:
         an id could be reused by a plan loaded after this one was dropped)."""
@@ -193,23 +221,35 @@ class Pipeline:
 
     # -- the run --------------------------------------------------------------------------
     def run(self, case: Case, views: list[View],
-            on_output: Callable[[OutgoingObject], None] = lambda obj: None) -> RunOutcome:
-        """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result as soon as it is
-        on disk (the report first), so sending does not wait for the rest of the run."""
+            on_output: Callable[[OutgoingObject], None] = lambda obj: None, *,
+            run_id: str | None = None, measurement: dict | None = None,
+            triggered: datetime | None = None, min_separation_deg: float = 15.0) -> RunOutcome:
+        """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result once every
+        result of the run is built and on disk (the report first).
+
+        ``run_id`` (default: the digest of the views' UIDs) names the run and its UIDs;
+        ``measurement`` its place in the re-measurement loop (:mod:`service.pinsets`);
+        ``triggered`` dates its DICOM content (default: the latest acquisition time of its
+        views), so the same run built again is the same objects."""
         started = time.perf_counter()
-        run_id = run_id_of([v.sop_instance_uid for v in views])
-        folder = self.run_folder(case, views)
+        run_id = run_id or run_id_of([v.sop_instance_uid for v in views])
+        folder = self.run_folder(case, views, run_id)
         folder.mkdir(parents=True, exist_ok=True)
         remove_partial(folder)  # of an attempt cut short by a crash
         recorder = CaseRecorder(folder / "recording.rrd", case.case_id, run_id)
+        when = triggered or max((v.acquisition_datetime for v in views
+                                 if v.acquisition_datetime is not None),
+                                default=datetime(1970, 1, 1, tzinfo=timezone.utc))
         try:
-            return self._run(case, views, run_id, folder, recorder, started, on_output)
+            return self._run(case, views, run_id, folder, recorder, started, on_output,
+                             measurement, when, min_separation_deg)
         finally:
             recorder.close()
 
     def _run(self, case: Case, views: list[View], run_id: str, folder: Path,
              recorder: CaseRecorder, started: float,
-             on_output: Callable[[OutgoingObject], None]) -> RunOutcome:
+             on_output: Callable[[OutgoingObject], None], measurement: dict | None,
+             when: datetime, min_separation_deg: float) -> RunOutcome:
         timings: dict[str, float] = {}
         reasons: list[str] = []
         clock = [time.perf_counter()]
@@ -240,6 +280,9 @@ class Pipeline:
         uids = {key: result_uid(case.case_id, run_id, key)
                 for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
         timings["total_s"] = time.perf_counter() - started
+        if measurement is not None and outcome is not None and outcome.status == "measured":
+            measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
+                plan, outcome, observations)}
         doc = build_result(
             case_id=case.case_id, run_id=run_id,
             case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
@@ -251,9 +294,20 @@ class Pipeline:
             initial=initial, reasons=reasons, timings=timings,
             outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
                      "sr_sop_instance_uid": uids["sr"],
-                     "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}})
-        objects = self._write_dicom(doc, items, plan, outcome, observations, uids, folder,
-                                    on_output)
+                     "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
+            measurement=measurement)
+        try:
+            built = self._build_dicom(doc, items, plan, outcome, observations, uids, when,
+                                      min_separation_deg)
+            objects = [self._save(ds, folder / name, kind, sop_class)
+                       for ds, name, kind, sop_class in built]
+        except Exception as exc:  # values that passed receipt must not cost the result
+            log.exception("case %s run %s: building the DICOM results failed", case.case_id,
+                          run_id)
+            doc["outputs"]["dicom_error"] = f"{type(exc).__name__}: {exc}"[:500]
+            objects = []
+        for obj in objects:  # every object built and on disk before any is sent
+            on_output(obj)
         lap("results")
         timings["total_s"] = time.perf_counter() - started
         validate_result(doc)
@@ -271,11 +325,13 @@ class Pipeline:
             ds = self.spool.read(view.entry)
             frame = decode_frame(ds)
             del ds.PixelData
-            item = _ViewInput(view, f"view{k}", frame, ds)
+            item = _ViewInput(view, f"view{k}", frame, sanitised_header(ds))
             recorder.frame(item.view_id, frame, view.positioner)
             recorder.encoder(item.view_id, view.pairing.initialisation, view.pairing.encoder_reading)
             if view.pairing.angle_check and view.pairing.angle_check.get("status") == "disagrees":
                 reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")
+            if view.pairing.clock is not None:
+                reasons.append(f"{item.view_id}: {view.pairing.clock['message']}")
             items.append(item)
         return items
 
@@ -369,7 +425,8 @@ class Pipeline:
                 "acquisition_datetime": None if when is None else when.isoformat(),
                 "positioner": view.positioner, "initialisation": view.pairing.initialisation,
                 "encoder_reading": view.pairing.encoder_reading,
-                "angle_check": view.pairing.angle_check, "contours": contours, "used": used,
+                "angle_check": view.pairing.angle_check, "clock": view.pairing.clock,
+                "contours": contours, "used": used,
                 "problem": left_out or view.pairing.problem}
 
     def _refused_sources(self, case: Case, first: int, reasons: list[str]) -> list[dict]:
@@ -382,10 +439,11 @@ class Pipeline:
         return out
 
     # -- DICOM results --------------------------------------------------------------------
-    def _write_dicom(self, doc: dict, items: list[_ViewInput], plan: Plan | None,
+    def _build_dicom(self, doc: dict, items: list[_ViewInput], plan: Plan | None,
                      outcome: SolveOutcome | None, observations: list[ViewObservation],
-                     uids: dict, folder: Path,
-                     on_output: Callable[[OutgoingObject], None]) -> list[OutgoingObject]:
+                     uids: dict, when: datetime, min_separation_deg: float
+                     ) -> list[tuple[Dataset, str, str, str]]:
+        """The run's SR and SCs, built in memory: (dataset, file name, kind, SOP class)."""
         measured = doc["status"] == "measured"
         geometry = None
         posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
@@ -398,12 +456,13 @@ class Pipeline:
                 tibia_frame_of_reference_uid(doc["inputs"]["plan"]["bone_mesh_sha256"]),
                 plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
                 plan.side)
-        series_sr, series_sc = uids["sr-series"], uids["sc-series"]
-        sr = build_sr(doc, [i.header for i in items], geometry, series_uid=series_sr,
-                      sop_instance_uid=uids["sr"], institution=self.institution)
-        objects = [self._save(sr, folder / "sr.dcm", "sr", _SR_CLASS)]
-        on_output(objects[0])
-        text = self._summary_lines(doc)
+        notes = self._notes(doc, min_separation_deg)
+        sr = build_sr(doc, [i.header for i in items], geometry, series_uid=uids["sr-series"],
+                      sop_instance_uid=uids["sr"], institution=self.institution,
+                      uid_for=lambda what: result_uid(doc["case_id"], doc["run_id"], what),
+                      content_datetime=when, notes=notes)
+        built = [(sr, "sr.dcm", "sr", _SR_CLASS)]
+        text = self._summary_lines(doc, min_separation_deg)
         for n, item in enumerate(items, start=1):
             overlay = ScOverlay(item.contours_raw or {}, text=text,
                                 within_tolerance=(doc["deviation"] or {}).get("within_tolerance"))
@@ -418,25 +477,60 @@ class Pipeline:
                 R_anat_cam = plan.landmarks.T_tibia_anat().inverse().R @ T.inverse().R
                 orientation = patient_orientation(R_anat_cam)
             rgb = render_overlay(item.frame.pixels, overlay)
-            sc = build_sc(item.header, rgb, series_uid=series_sc,
+            sc = build_sc(item.header, rgb, series_uid=uids["sc-series"],
                           sop_instance_uid=uids[item.view_id], instance_number=n,
-                          orientation=orientation, institution=self.institution)
-            objects.append(self._save(sc, folder / f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
-            on_output(objects[-1])
-        return objects
+                          orientation=orientation, institution=self.institution,
+                          content_datetime=when)
+            built.append((sc, f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
+        return built
+
+    def _pin_misfit(self, plan: Plan, outcome: SolveOutcome,
+                    observations: list[ViewObservation]) -> float:
+        """The set's own noise for the pin test of later views (:mod:`service.pinsets`): the
+        worst offset of a view's pin contours from the solved pins, over the views measured."""
+        axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
+        return round(max(pin_disagreement_px(o.camera, T, axes, [o.contours["pin1"],
+                                                                  o.contours["pin2"]])
+                         for o, T in zip(observations, outcome.T_cam_tibia)), 3)
+
+    @staticmethod
+    def _notes(doc: dict, min_separation_deg: float) -> list[tuple[str, str]]:
+        """The SR's notes in words: why not measured and what to do; the measurement history."""
+        notes = []
+        if doc["status"] != "measured":
+            notes += [("reason", doc["reason"]), ("action", advice(doc["reason"], min_separation_deg))]
+        m = doc.get("measurement")
+        if m is not None:
+            text = f"pin set {m['pin_set']}, measurement {m['number']} ({m['started_by']})"
+            previous = m["previous"]
+            if previous is not None:
+                angles = ("not measured" if previous["ctr_deg"] is None else
+                          f"CTR {previous['ctr_deg']:+.1f}, STR {previous['str_deg']:+.1f} deg")
+                text += (f"; previous: pin set {previous['pin_set']}, measurement "
+                         f"{previous['number']}: {angles}, {previous['verdict'].replace('_', ' ')}")
+            change = change_line(previous, doc)
+            notes.append(("history", text + (f"; {change}" if change else "")))
+        return notes
 
     def _project(self, T_cam_tibia: Pose, points_tibia: np.ndarray) -> np.ndarray:
         ideal = self.calibration.camera.project(T_cam_tibia.apply(points_tibia))
         return self.calibration.distort_points(ideal)
 
     @staticmethod
-    def _summary_lines(doc: dict) -> list[str]:
+    def _summary_lines(doc: dict, min_separation_deg: float) -> list[str]:
+        m = doc.get("measurement")
+        head = [] if m is None else [f"Pin set {m['pin_set']}, measurement {m['number']}"]
         if doc["status"] != "measured":
-            return ["NOT MEASURED", doc["reason"][:90]]
+            return ["NOT MEASURED", *head, doc["reason"],
+                    "Next: " + advice(doc["reason"], min_separation_deg)]
         a, t, d = doc["angles"], doc["target"], doc["deviation"]
+        change = change_line(m["previous"], doc) if m is not None else None
+        clock = [f"Note: {s['view_id']}: {s['clock']['message']}" for s in doc["sources"]
+                 if s.get("clock")]
         return [f"CTR {a['ctr_deg']:+.1f} deg (+-{a['ctr_sigma_deg']:.1f})  plan {t['ctr_deg']:+.1f}",
                 f"STR {a['str_deg']:+.1f} deg (+-{a['str_sigma_deg']:.1f})  plan {t['str_deg']:+.1f}",
-                f"{'WITHIN' if d['within_tolerance'] else 'OUTSIDE'} +-{t['tolerance_deg']:.0f} deg"]
+                f"{'WITHIN' if d['within_tolerance'] else 'OUTSIDE'} +-{t['tolerance_deg']:.0f} deg",
+                *head, *([change] if change else []), *clock]
 
     @staticmethod
     def _save(ds: Dataset, path: Path, kind: str, sop_class: str) -> OutgoingObject:

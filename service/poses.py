@@ -36,6 +36,7 @@ from solver.block import block_axes, bone_entry_mm, pin_pose
 from solver.geometry import Pose, look_at
 from solver.plan import Plan
 
+from .clock import review_pairing
 from .frames import Frame
 
 __all__ = ["beam_direction_anat", "positioner_T_anat_cam", "planned_pins",
@@ -79,6 +80,7 @@ class ViewPairing:
     encoder_reading: dict | None = None  # EncoderReading.to_json()
     angle_check: dict | None = None  # encoders against the DICOM positioner angles
     problem: str | None = None  # why the view cannot be initialised
+    clock: dict | None = None  # a clock offset found and how it was handled (service.clock)
 
     def to_json(self) -> dict:
         return dict(vars(self))
@@ -86,7 +88,7 @@ class ViewPairing:
     @staticmethod
     def from_json(d: dict) -> ViewPairing:
         return ViewPairing(d.get("initialisation"), d.get("encoder_reading"), d.get("angle_check"),
-                           d.get("problem"))
+                           d.get("problem"), d.get("clock"))
 
 
 @dataclass(frozen=True)
@@ -106,20 +108,36 @@ class ViewGeometry:
     """The C-arm side of the service: encoder pairing, beam directions, initial view poses."""
 
     def __init__(self, kinematics: CArmKinematics, setup: dict, link: EncoderLink | None,
-                 max_reading_age_s: float, angle_check_deg: float):
+                 max_reading_age_s: float, angle_check_deg: float, max_clock_offset_s: float = 0.0):
         self.kinematics, self.setup_config, self.link = kinematics, dict(setup), link
         self.max_reading_age_s, self.angle_check_deg = max_reading_age_s, angle_check_deg
+        self.max_clock_offset_s = max_clock_offset_s
         # The set-up's orientation and isocentre do not depend on the plan: any landmarks do.
         self._nominal_setup = self.setup(Landmarks.nominal())
 
     def setup(self, landmarks: Landmarks) -> PatientSetup:
         return PatientSetup.from_config(landmarks, self.setup_config)
 
-    def pair(self, frame: Frame) -> ViewPairing:
-        """The encoder reading at the frame's acquisition time, else its positioner angles."""
+    def pair(self, frame: Frame, taken: set[int] = frozenset()) -> ViewPairing:
+        """The encoder reading at the frame's acquisition time, else its positioner angles.
+
+        ``taken``: sequence numbers of the readings other views of the case were paired
+        with. A reading that shows a clock offset (:mod:`service.clock`) is replaced by the
+        one at the corrected time, or by the header's angles, with a ``clock`` note."""
         reading = None
         if self.link is not None and frame.acquisition_datetime is not None:
             reading = self.link.reading_at(frame.acquisition_datetime, self.max_reading_age_s)
+            review = review_pairing(self.link, self.kinematics, self._nominal_setup,
+                                    frame.acquisition_datetime, reading, frame.primary_angle_deg,
+                                    frame.secondary_angle_deg, set(taken), self.angle_check_deg,
+                                    self.max_clock_offset_s)
+            if review is not None:
+                if review.reading is not None:
+                    return ViewPairing("encoders", review.reading.to_json(),
+                                       review.check.to_json(), clock=review.note)
+                if review.note["status"] == "header_angles":
+                    return ViewPairing("dicom_positioner", clock=review.note)
+                return ViewPairing(None, problem=review.note["message"], clock=review.note)
         has_angles = frame.primary_angle_deg is not None and frame.secondary_angle_deg is not None
         if reading is not None:
             check = check_dicom_angles(self.kinematics, reading.joints, self._nominal_setup,

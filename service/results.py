@@ -59,12 +59,13 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
                  outcome: SolveOutcome | None, method: str, plan: Plan | None,
                  views: list[ViewObservation], calibration: dict | None,
                  initial: InitialGuess | None, reasons: list[str], timings: dict[str, float],
-                 outputs: dict) -> dict:
+                 outputs: dict, measurement: dict | None = None) -> dict:
     """The validated result document of one pipeline run.
 
     ``reasons`` are the pipeline's own findings (views left out, a refusal before the solve);
     the solver's refusal reason is appended to them. ``method`` is the one the solver was
-    configured with (``SolveOutcome`` does not say).
+    configured with (``SolveOutcome`` does not say). ``measurement``: the run's place in
+    the re-measurement loop (pin set, number, previous measurement).
     """
     reasons = list(reasons)
     if outcome is None:
@@ -97,6 +98,7 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
         },
         "timings": timings,
         "outputs": outputs,
+        "measurement": measurement,
     })
     validate_result(doc)
     return doc

@@ -8,6 +8,14 @@ its answer comes (a crash mid-round re-sends only the object in flight); a failu
 with exponential backoff (``retry_initial_s`` doubling up to ``retry_max_s``) and after
 ``max_attempts`` the job moves to ``queue/failed/``. Every success, failure and abandonment
 is in the audit log.
+
+Order: a round sends *every* pending job of a destination, oldest first, once any of them is
+due, and while a destination is failing it is probed (TCP, then C-ECHO) every
+``retry_initial_s`` (at most 2 s): a
+display that comes back gets the queue at once, in order, not after each job's backoff.
+A newer run of a case replaces the case's older objects not yet delivered (audited
+``send_superseded``): the display should show the latest measurement, not catch up on
+stale ones. A refused TCP connection is reported as "connection refused".
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import socket
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -32,6 +41,7 @@ from .spool import remove_partial, write_json_atomic
 __all__ = ["Sender", "SendJob", "OutgoingObject"]
 
 log = logging.getLogger("slamtka.sender")
+_MAX_PROBE_S = 2.0  # a failing destination is probed at least this often
 _SUCCESS_OR_WARNING = {0x0000, 0x0107, 0x0116, 0xB000, 0xB006, 0xB007}
 
 
@@ -61,6 +71,19 @@ class SendJob:
     last_error: str = ""
 
 
+def _connect_problem(dest: Destination) -> str:
+    """Why no association came about, as the network says it (refused, unreachable, ...)."""
+    try:
+        with socket.create_connection((dest.host, dest.port), timeout=5.0):
+            return "association aborted (the port accepts connections)"
+    except ConnectionRefusedError:
+        return f"connection refused by {dest.host}:{dest.port}"
+    except TimeoutError:
+        return f"no answer from {dest.host}:{dest.port} (timed out)"
+    except OSError as exc:
+        return f"cannot connect to {dest.host}:{dest.port} ({exc.strerror or exc})"
+
+
 class Sender:
     def __init__(self, ae_title: str, destinations: list[Destination], config: SenderConfig,
                  queue_dir: Path, audit: AuditLog):
@@ -72,12 +95,18 @@ class Sender:
         self.failed_dir.mkdir(parents=True, exist_ok=True)
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._probed: dict[str, float] = {}  # destination -> when it was last probed
+        # Held while a job file is removed by a newer run or rewritten after a failure, so a
+        # round still sending a superseded job cannot bring its file back.
+        self._jobs_lock = threading.Lock()
+        self._probe_s = min(config.retry_initial_s, _MAX_PROBE_S)
         self._thread: threading.Thread | None = None
 
     # -- queue ------------------------------------------------------------------------------
     def enqueue(self, objects: list[OutgoingObject], case_id: str, run_id: str) -> list[SendJob]:
         jobs = []
         now = time.time()
+        self._supersede(case_id, run_id)
         for dest in self.destinations.values():
             for obj in objects:
                 if obj.kind not in dest.objects:
@@ -90,6 +119,16 @@ class Sender:
                 jobs.append(job)
         self._wake.set()
         return jobs
+
+    def _supersede(self, case_id: str, run_id: str) -> None:
+        """Drop the case's pending jobs of other (older) runs: a newer result replaces them."""
+        for job in self.pending():
+            if job.case_id == case_id and job.run_id != run_id:
+                with self._jobs_lock:
+                    (self.pending_dir / f"{job.id}.json").unlink(missing_ok=True)
+                self.audit.record("send_superseded", destination=job.destination,
+                                  sop_instance_uid=job.sop_instance_uid, kind=job.kind,
+                                  case_id=case_id, run_id=job.run_id, by_run_id=run_id)
 
     def recover(self) -> int:
         """At start-up: remove what a killed writer left in the queue; how many files."""
@@ -139,13 +178,19 @@ class Sender:
         except Exception as exc:  # socket/TLS setup errors of every kind end up here
             return sum(self._settle(j, f"cannot connect: {exc}", now) for j in jobs)
         if not assoc.is_established:
-            why = "rejected" if assoc.is_rejected else "aborted" if assoc.is_aborted else "failed"
-            if tls_error:
-                why += f" (TLS: {tls_error})"
-            return sum(self._settle(j, f"association {why}", now) for j in jobs)
+            if assoc.is_rejected:
+                why = "association rejected"
+            elif tls_error:
+                why = f"association aborted (TLS: {tls_error})"
+            else:
+                why = _connect_problem(dest)
+            return sum(self._settle(j, why, now) for j in jobs)
         sent, done = 0, 0
         try:
             for job in jobs:
+                if not (self.pending_dir / f"{job.id}.json").is_file():
+                    done += 1  # superseded by a newer run of its case meanwhile: not sent
+                    continue
                 try:
                     ds = pydicom.dcmread(job.path)
                 except (OSError, pydicom.errors.InvalidDicomError) as exc:
@@ -163,12 +208,15 @@ class Sender:
         return sent
 
     def run_once(self, now: float | None = None) -> int:
-        """Send every due job; returns how many were sent."""
+        """Send, oldest first, every pending job of each destination that has a due job or
+        answers a probe again; returns how many were sent."""
         now = time.time() if now is None else now
-        due = [j for j in self.pending() if j.next_attempt <= now]
+        pending = self.pending()
         sent = 0
-        for name in sorted({j.destination for j in due}):
-            jobs = [j for j in due if j.destination == name]
+        for name in sorted({j.destination for j in pending}):
+            jobs = [j for j in pending if j.destination == name]
+            if all(j.next_attempt > now for j in jobs) and not self._back(name, now):
+                continue
             dest = self.destinations.get(name)
             if dest is None:
                 sent += sum(self._settle(j, f"destination {name!r} is no longer configured", now)
@@ -187,6 +235,13 @@ class Sender:
             return 1
         job.attempts += 1
         job.last_error = error
+        with self._jobs_lock:
+            if not path.is_file():  # superseded by a newer run while it was being sent
+                return 0
+            return self._retry_or_abandon(job, path, error, fields, now)
+
+    def _retry_or_abandon(self, job: SendJob, path: Path, error: str, fields: dict,
+                          now: float) -> int:
         if job.attempts >= self.config.max_attempts:
             write_json_atomic(self.failed_dir / f"{job.id}.json", asdict(job))
             path.unlink(missing_ok=True)
@@ -202,6 +257,23 @@ class Sender:
                     error, delay)
         return 0
 
+    def _back(self, name: str, now: float) -> bool:
+        """Whether a failing destination answers again (a C-ECHO association, at most every
+        ``retry_initial_s``): its queue is then sent at once."""
+        dest = self.destinations.get(name)
+        if dest is None or now < self._probed.get(name, 0.0) + self._probe_s:
+            return False
+        self._probed[name] = now
+        try:  # the port first: no association attempt (and its error log) while it is closed
+            socket.create_connection((dest.host, dest.port), timeout=2.0).close()
+            assoc = self._association(dest, {"1.2.840.10008.1.1"})
+        except Exception:
+            return False
+        if not assoc.is_established:
+            return False
+        assoc.release()
+        return True
+
     # -- worker thread ----------------------------------------------------------------------
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -210,8 +282,10 @@ class Sender:
                 self.run_once()
             except Exception:  # keep the worker alive; the job files stay for the next round
                 log.exception("sender round failed")
-            upcoming = [j.next_attempt for j in self.pending()]
-            wait = min([max(t - time.time(), 0.0) for t in upcoming] + [5.0])
+            pending = self.pending()
+            upcoming = [j.next_attempt for j in pending]
+            probe = [self._probe_s] if pending else []
+            wait = min([max(t - time.time(), 0.0) for t in upcoming] + probe + [5.0])
             self._wake.wait(max(wait, 0.01))
 
     def start(self) -> None:

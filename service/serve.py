@@ -30,7 +30,7 @@ from drivers.encoder_link import EncoderLink, LinkConfig
 from drivers.kinematics import CArmKinematics
 
 from .audit import AuditLog, last_event
-from .cases import Case, CaseAssembler, run_id_of
+from .cases import Case, CaseAssembler
 from .config import ServiceConfig, load_config
 from .plans import PlanStore
 from .poses import ViewGeometry
@@ -38,10 +38,12 @@ from .scp import DicomReceiver
 from .sender import Sender
 from .spool import Spool, SpoolEntry, remove_partial
 from .status import Metrics, StatusBoard
+from .workflow import Workflow
 
 __all__ = ["Service", "add_serve_parser"]
 
 log = logging.getLogger("slamtka.serve")
+_REQUEST_POLL_S = 0.5  # how soon an idle worker sees an operator's request
 
 
 def _sd_notify(message: str) -> None:
@@ -79,7 +81,8 @@ class Service:
         if config.carm.encoder_port:
             self.link = EncoderLink(config.carm.encoder_port, LinkConfig.from_config(config.carm.link))
         geometry = ViewGeometry(kinematics, config.carm.setup, self.link,
-                                config.carm.max_reading_age_s, config.carm.angle_check_deg)
+                                config.carm.max_reading_age_s, config.carm.angle_check_deg,
+                                config.carm.max_clock_offset_s)
         self.plans = PlanStore(config.plans)
         self.pipeline = Pipeline(self.spool, self.plans, self.calibration, geometry, config.output,
                                  manual_contours_dir=config.pipeline.manual_contours_dir,
@@ -88,6 +91,11 @@ class Service:
                                        config.pipeline.max_views)
         self.sender = Sender(config.dicom.ae_title, config.destinations, config.sender,
                              config.queue_dir, self.audit)
+        self.workflow = Workflow(self.pipeline, self.sender, self.audit, config.data_dir,
+                                 min_separation_deg=config.pipeline.min_view_separation_deg,
+                                 max_views=config.pipeline.max_views,
+                                 new_set_on_new_series=config.pipeline.new_set_on_new_series,
+                                 institution=config.institution)
         self._incoming: queue.Queue[SpoolEntry | None] = queue.Queue()
         self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put)
         self._worker: threading.Thread | None = None
@@ -165,15 +173,23 @@ class Service:
         """Rebuild cases from the spool; the cases whose current views were not measured."""
         for entry in self.spool.entries():
             self.assembler.add(entry)
+        for case in self.assembler.cases.values():
+            self.workflow.restore(case)
         return [c for c in self.assembler.cases.values()
-                if self.assembler.is_due(c)
-                and not self.pipeline.already_done(c, c.selection(self.config.pipeline.max_views))]
+                if self.workflow.is_due(c)
+                and not self.pipeline.already_done(c, self.workflow.selection(c))]
 
     # -- the worker -----------------------------------------------------------------------
     def _work(self, due: list[Case]) -> None:
         pending = {c.case_id: c for c in due}  # cases to run, oldest first
+        reruns: set[str] = set()  # of those, the ones an operator asked to run again
         while True:
-            batch = [] if pending else [self._incoming.get()]
+            batch = []
+            if not pending:
+                try:  # a timeout, to take the operators' requests (`slamtka case`) when idle
+                    batch.append(self._incoming.get(timeout=_REQUEST_POLL_S))
+                except queue.Empty:
+                    pass
             # Take everything already waiting, so views that arrive together run once.
             while True:
                 try:
@@ -184,14 +200,19 @@ class Service:
                 return
             for entry in batch:
                 self._assemble(entry, pending)
+            for case, _ in self.workflow.take_requests(self.assembler.cases):
+                pending[case.case_id] = case
+                reruns.add(case.case_id)
             if pending:
-                self._process(pending.pop(next(iter(pending))))
+                case = pending.pop(next(iter(pending)))
+                self._process(case, rerun=case.case_id in reruns)
+                reruns.discard(case.case_id)
             self.status.refresh()
 
     def _assemble(self, entry: SpoolEntry, pending: dict[str, Case]) -> None:
         """Put a received instance into its case and extract its contours ahead of the run."""
         try:
-            case, due = self.assembler.add(entry)
+            case, _ = self.assembler.add(entry)
         except Exception as exc:  # one bad instance must not stop the worker; it is audited
             log.exception("cannot assemble instance %s", entry.id)
             self.audit.record("failed", sop_instance_uid=entry.sop_instance_uid,
@@ -200,29 +221,40 @@ class Service:
         if case is None:
             return
         view = case.views[entry.sop_instance_uid]
+        if view.pairing.clock is not None:
+            self.audit.record("clock_mismatch", case_id=case.case_id,
+                              sop_instance_uid=entry.sop_instance_uid, **view.pairing.clock)
         if not view.usable:
             # Kept in its case (a later reading or configuration may not help, but nothing
             # received is dropped); said at once, since no run will report it.
             self.audit.record("view_unusable", case_id=case.case_id,
                               sop_instance_uid=entry.sop_instance_uid, reason=view.pairing.problem)
-        try:
-            self.pipeline.prepare(case, view)
-        except Exception:  # the run will meet, and report, the same problem
-            log.exception("extracting the contours of instance %s ahead failed", entry.id)
+        try:  # extracted now, so that a run triggered later only waits for its last view's
+            due = self.workflow.place(case, view)
+        except Exception as exc:  # the view stays in its case; the failure is audited
+            log.exception("placing instance %s in a pin set failed", entry.id)
+            self.audit.record("failed", case_id=case.case_id,
+                              sop_instance_uid=entry.sop_instance_uid,
+                              error=f"{type(exc).__name__}: {exc}")
+            return
         if due:
             pending[case.case_id] = case
 
-    def _process(self, case: Case) -> None:
-        views = case.selection(self.config.pipeline.max_views)
-        if self.pipeline.already_done(case, views):
+    def _process(self, case: Case, rerun: bool = False) -> None:
+        views = self.workflow.selection(case)
+        if len(views) < 2 or (not rerun and self.pipeline.already_done(case, views)):
             return
-        run_id = run_id_of([v.sop_instance_uid for v in views])
+        run_id, measurement, triggered = self.workflow.begin_run(case, views, rerun)
         self.audit.record("case_triggered", case_id=case.case_id, run_id=run_id,
                           sop_instance_uids=[v.sop_instance_uid for v in views],
-                          separation_deg=round(case.separation_deg(views), 2))
+                          separation_deg=round(case.separation_deg(views), 2),
+                          pin_set=measurement["pin_set"], number=measurement["number"],
+                          rerun=rerun)
         try:
-            outcome = self.pipeline.run(case, views, on_output=lambda obj: self.sender.enqueue(
-                [obj], case.case_id, run_id))
+            outcome = self.pipeline.run(
+                case, views, on_output=lambda obj: self.sender.enqueue([obj], case.case_id, run_id),
+                run_id=run_id, measurement=measurement, triggered=triggered,
+                min_separation_deg=self.config.pipeline.min_view_separation_deg)
         except Exception as exc:  # one bad case must not stop the service; it is audited
             log.exception("case %s run %s failed", case.case_id, run_id)
             self.audit.record("failed", case_id=case.case_id, run_id=run_id,
@@ -230,8 +262,10 @@ class Service:
             return
         doc = outcome.doc
         angles = doc["angles"] or {}
+        self.workflow.finish_run(case, run_id, doc)
         self._last_result = self.audit.record(
-            "processed", case_id=case.case_id, run_id=run_id, status=doc["status"],
+            "processed", case_id=case.case_id, run_id=run_id, pin_set=measurement["pin_set"],
+            number=measurement["number"], status=doc["status"],
             verdict=doc["verdict"], reason=doc["reason"], ctr_deg=angles.get("ctr_deg"),
             str_deg=angles.get("str_deg"), seconds=doc["timings"]["total_s"],
             folder=str(outcome.folder))

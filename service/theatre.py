@@ -27,7 +27,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -43,12 +43,13 @@ from pynetdicom.sop_class import (
 
 from drivers.carm_sim import MotionScript, SimulatedCArm
 from drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles, initial_view_poses
-from solver.geometry import rotation_about
+from solver.geometry import Pose, rotation_about
 from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, default_camera, simulate_case
 
 from .cases import case_id_of, run_id_of
+from .display import STATUS_SERIES
 from .frames import Frame, encode_frame
 from .plans import PlanStore
 
@@ -111,6 +112,16 @@ class TheatreCase:
     frames: list[Frame]
     outlines: list[dict[str, np.ndarray]]  # true outlines per view, raw pixels (the truth)
     send_started: list[float] = field(default_factory=list)  # monotonic, before each C-STORE
+    truth_T_tibia_pin: list = field(default_factory=list)  # the pins as placed (Pose)
+    setup: PatientSetup | None = None  # how the patient really lies
+
+
+def _evidence(sr: Dataset) -> set[str]:
+    """The SOP Instance UIDs an SR names as its evidence."""
+    return {item.ReferencedSOPInstanceUID
+            for study in sr.get("CurrentRequestedProcedureEvidenceSequence", [])
+            for series in study.ReferencedSeriesSequence
+            for item in series.ReferencedSOPSequence}
 
 
 def _free_port() -> int:
@@ -137,6 +148,7 @@ class Theatre:
         self.config: Path | None = None
         self.port = 0
         self.environ: dict[str, str] = {}  # configuration overrides (SLAMTKA_...) for the service
+        self.clock_offset_s = 0.0  # how far the C-arm's frame times are off the host's clock
         self._scene: XRayScene | None = None
 
     # -- set-up ---------------------------------------------------------------------------
@@ -212,12 +224,39 @@ port = {display_port}
         rng = np.random.default_rng(seed)
         sim = simulate_case(self.plan, SimulationConfig(view_angles_deg=(0.0,), seed=seed))
         setup = self._true_setup(rng)
+        return self._render(index, generate_uid(prefix=None), list(sim.truth_T_tibia_pin), setup,
+                            rng, sim.truth_ctr_deg, sim.truth_str_deg)
+
+    def repin(self, case: TheatreCase, axis: str, angle_deg: float) -> TheatreCase:
+        """The surgeon moves the pins: both turned by ``angle_deg`` about the anatomical
+        ``axis`` ("ml": medio-lateral, changes STR; "ap": antero-posterior, changes CTR)
+        through their midpoint; new views of the same study, the patient lying as before."""
+        from solver.measurement import fit_resection_plane
+
+        lm = self.plan.landmarks
+        T_tibia_anat = lm.T_tibia_anat()
+        direction = T_tibia_anat.R @ {"ml": np.array([1.0, 0.0, 0.0]),
+                                      "ap": np.array([0.0, 1.0, 0.0])}[axis]
+        half = 0.5 * self.plan.pin_length()
+        centre = np.mean([T.apply(np.array([0.0, 0.0, half])) for T in case.truth_T_tibia_pin], 0)
+        R = rotation_about(direction, np.radians(angle_deg))
+        turn = Pose(R, centre - R @ centre)
+        pins = [turn @ T for T in case.truth_T_tibia_pin]
+        plane = fit_resection_plane(pins, self.plan.pin_length(), lm)
+        rng = np.random.default_rng([self.seed, case.index, int(round(angle_deg * 10)) + 1000,
+                                     len(axis) + ord(axis[0])])
+        return self._render(case.index, case.study_uid, pins, case.setup, rng,
+                            float(np.degrees(plane.ctr)), float(np.degrees(plane.str_)))
+
+    def _render(self, index: int, study: str, pins: list, setup: PatientSetup,
+                rng: np.random.Generator, ctr_deg: float, str_deg: float) -> TheatreCase:
+        """Render every scripted view of pins ``pins`` with the patient lying as ``setup``."""
         nominal = PatientSetup(self.plan.landmarks.T_tibia_anat())
-        study, series = generate_uid(prefix=None), generate_uid(prefix=None)
+        series = generate_uid(prefix=None)
         frames, outlines = [], []
         for k, joints in enumerate(self.script.views, start=1):
             (T_cam_tibia,), _ = initial_view_poses(self.kinematics, [joints], setup)
-            image = render_radiograph(self.plan, T_cam_tibia, sim.truth_T_tibia_pin, self.camera,
+            image = render_radiograph(self.plan, T_cam_tibia, pins, self.camera,
                                       XRayParams(distortion=self.distortion), rng, self._scene)
             primary, secondary = dicom_angles(self.kinematics, joints, nominal)
             spacing = self._pixel_spacing_mm(joints)
@@ -229,7 +268,8 @@ port = {display_port}
                 series_uid=series, laterality="R", bits_stored=image.bits_stored,
                 instance_number=k))
             outlines.append(image.silhouettes)
-        return TheatreCase(index, study, sim.truth_ctr_deg, sim.truth_str_deg, frames, outlines)
+        return TheatreCase(index, study, ctr_deg, str_deg, frames, outlines,
+                           truth_T_tibia_pin=pins, setup=setup)
 
     def _pixel_spacing_mm(self, joints: JointReading) -> float:
         """Detector pixel size: the calibrated focal length is SID over the pixel pitch."""
@@ -289,17 +329,21 @@ port = {display_port}
         n = np.ceil((after - boot - offset) / cycle)
         return boot + max(n, 0) * cycle + offset
 
-    def acquire(self, case: TheatreCase, keep_times: bool = False) -> None:
+    def acquire(self, case: TheatreCase, keep_times: bool = False,
+                views: list[int] | None = None) -> None:
         """Expose and send each view of ``case`` when the simulated C-arm holds at it
-        (``keep_times``: send at once, with the acquisition times the frames already carry)."""
+        (``keep_times``: send at once, with the acquisition times the frames already carry;
+        ``views``: the script's view each frame shows, default the frames' order)."""
         ae = AE(ae_title=CARM_AE)
         ae.add_requested_context(XRayAngiographicImageStorage)
         after = time.monotonic()
         for k, frame in enumerate(case.frames):
             if not keep_times:
                 if self.encoders:
-                    time.sleep(max(0.0, self.exposure_time(k, after) - time.monotonic()))
-                frame.acquisition_datetime = datetime.now(timezone.utc)
+                    view = k if views is None else views[k]
+                    time.sleep(max(0.0, self.exposure_time(view, after) - time.monotonic()))
+                frame.acquisition_datetime = datetime.now(timezone.utc) + timedelta(
+                    seconds=self.clock_offset_s)
             ds = encode_frame(frame)
             case.send_started.append(time.monotonic())
             assoc = ae.associate("127.0.0.1", self.port, ae_title=SERVICE_AE)
@@ -318,17 +362,22 @@ port = {display_port}
         frames = [replace(f, study_uid=study, series_uid=series,
                           sop_instance_uid=generate_uid(prefix=None)) for f in case.frames]
         return TheatreCase(case.index, study, case.truth_ctr_deg, case.truth_str_deg, frames,
-                           case.outlines)
+                           case.outlines, truth_T_tibia_pin=case.truth_T_tibia_pin,
+                           setup=case.setup)
 
     def result_folder(self, case: TheatreCase) -> Path:
         """Where the service writes the run of all of ``case``'s views."""
         run = run_id_of([f.sop_instance_uid for f in case.frames])
         return self.root / "data" / "output" / case_id_of(PATIENT_ID, case.study_uid, "R") / run
 
-    def wait_for_result(self, case: TheatreCase, timeout: float = 120.0) -> tuple[float, Dataset]:
-        """(arrival time, SR) of the case's structured report at the OR display."""
+    def wait_for_result(self, case: TheatreCase, timeout: float = 120.0,
+                        exact: bool = False) -> tuple[float, Dataset]:
+        """(arrival time, SR) of the case's measurement report at the OR display (status
+        reports aside); ``exact``: the report of a run of exactly ``case``'s frames."""
+        sops = {f.sop_instance_uid for f in case.frames} if exact else set()
         items = self.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid
-                                  and ds.Modality == "SR", timeout)
+                                  and ds.Modality == "SR" and ds.SeriesDescription != STATUS_SERIES
+                                  and (not sops or _evidence(ds) == sops), timeout)
         if not items:
             raise TimeoutError(f"no result for case {case.index} within {timeout:.0f} s")
         return items[0]

@@ -23,6 +23,7 @@ import pytest
 from service.audit import read_audit
 from service.cli import main
 from service.cases import case_id_of, run_id_of
+from service.display import STATUS_SERIES
 from service.frames import encode_frame
 from service.results import validate_result
 from service.theatre import CARM_AE, SERVICE_AE, Theatre
@@ -87,7 +88,8 @@ def test_a_surgery_end_to_end(theatre, capsys):
     assert doc["calibration"]["sha256"] and doc["case"]["laterality"] == "R"
 
     # DICOM results at the display and on disk: valid, and saying the same as the JSON.
-    received = th.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid, 30.0, count=3)
+    received = th.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid
+                               and ds.SeriesDescription != STATUS_SERIES, 30.0, count=3)
     classes = sorted(str(ds.SOPClassUID) for _, ds in received)
     assert classes == ["1.2.840.10008.5.1.4.1.1.7"] * 2 + ["1.2.840.10008.5.1.4.1.1.88.34"]
     for path in [folder / "sr.dcm", *sorted(folder.glob("sc-*.dcm"))]:
@@ -114,9 +116,12 @@ def test_a_surgery_end_to_end(theatre, capsys):
     assert code == 1 and "MISMATCH angles" in bad
 
     # The audit log holds the whole story in order, one fsynced JSON line per object.
-    events = [e["event"] for e in read_audit(th.root / "data" / "audit.jsonl")]
+    entries = list(read_audit(th.root / "data" / "audit.jsonl"))
+    events = [e["event"] for e in entries]
     assert events[:1] == ["service_started"]
-    story = [e for e in events if e in ("received", "case_triggered", "processed", "sent")]
+    story = [e["event"] for e in entries if e["event"] in ("received", "case_triggered",
+                                                          "processed", "sent")
+             and not str(e.get("run_id", "")).startswith("status-")]  # the lone view's status
     assert story[:3] == ["received", "received", "case_triggered"]
     assert "processed" in story and story.count("sent") >= 3  # the report may leave first
 
@@ -148,9 +153,10 @@ def test_further_views_duplicates_refusals_and_crash_recovery(theatre):
     out = subprocess.run(["storescu", "-aet", CARM_AE, "-aec", SERVICE_AE, "127.0.0.1", str(th.port),
                           str(path)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
-    th.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid and ds.Modality == "SR",
-                    60.0, count=2)
-    runs = sorted(p for p in first.parent.iterdir() if not p.name.startswith("."))
+    th.display.wait(lambda ds: ds.StudyInstanceUID == case.study_uid and ds.Modality == "SR"
+                    and ds.SeriesDescription != STATUS_SERIES, 60.0, count=2)
+    runs = sorted(p for p in first.parent.iterdir()
+                  if not p.name.startswith((".", "status-")))  # status reports aside
     assert len(runs) == 2
     again = json.loads(_wait_file(next(r for r in runs if r != first) / "result.json").read_text())
     assert len(again["sources"]) == 3

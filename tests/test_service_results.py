@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import datetime as dt
 import json
 import shutil
 import subprocess
@@ -21,10 +22,11 @@ from solver.slam import InitialGuess, SolveOutcome
 from service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
 from service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
 from service.frames import encode_frame
-from service.pipeline import plane_polygon
+from service.pipeline import plane_polygon, result_uid
 from service.results import build_result, result_schema, validate_result
 from service_testing import small_frame
 
+_WHEN = dt.datetime(2026, 3, 4, 10, 11, 12, 345000, tzinfo=dt.timezone.utc)
 needs_dicom3tools = pytest.mark.skipif(shutil.which("dciodvfy") is None or
                                        shutil.which("dsrdump") is None,
                                        reason="dicom3tools/DCMTK not installed")
@@ -132,7 +134,8 @@ def test_sr_passes_dciodvfy_and_reads_back_with_dsrdump(truth_case, tmp_path):
     geometry = SrGeometry(tibia_frame_of_reference_uid("cd" * 32),
                           plane_polygon(outcome.plane.point, outcome.plane.normal), axes,
                           [88.0, 91.0], "right")
-    sr = build_sr(doc, evidence, geometry, series_uid=generate_uid(), sop_instance_uid=generate_uid())
+    sr = build_sr(doc, evidence, geometry, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
+                  uid_for=lambda what: result_uid("case-x", "run", what), content_datetime=_WHEN)
     path = tmp_path / "sr.dcm"
     sr.save_as(path, enforce_file_format=True)
     assert _dciodvfy_errors(path) == []
@@ -160,11 +163,18 @@ def test_not_measured_sr_and_sc_pass_dciodvfy(tmp_path):
     source = encode_frame(frame)
     doc = {"status": "not_measured", "angles": None, "deviation": None,
            "software": {"version": "0.1.0"}, "inputs": None, "case": {"laterality": "R"}}
-    sr = build_sr(doc, [source], None, series_uid=generate_uid(), sop_instance_uid=generate_uid())
+    sr = build_sr(doc, [source], None, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
+                  uid_for=lambda what: result_uid("case-x", "run", what), content_datetime=_WHEN,
+                  notes=[("reason", "no plan for patient 'P-1', right side"),
+                         ("action", "add the plan, then re-run the case")])
     sr.save_as(tmp_path / "sr.dcm", enforce_file_format=True)
     assert _dciodvfy_errors(tmp_path / "sr.dcm") == []
-    dump = subprocess.run(["dsrdump", str(tmp_path / "sr.dcm")], capture_output=True, text=True)
+    dump = subprocess.run(["dsrdump", "+Pl", str(tmp_path / "sr.dcm")], capture_output=True,
+                          text=True)
     assert "Not measured" in dump.stdout
+    # The reason and what to do are content items, not only burned into the overlay.
+    assert '"Reason not measured")="no plan for patient' in dump.stdout
+    assert '"What to do next")="add the plan, then re-run the case"' in dump.stdout
     t = np.linspace(0, 2 * np.pi, 400)
     overlay = ScOverlay({"bone": np.c_[128 + 60 * np.cos(t), 128 + 90 * np.sin(t)]},
                         text=["NOT MEASURED", "no plan"])
@@ -173,7 +183,7 @@ def test_not_measured_sr_and_sc_pass_dciodvfy(tmp_path):
     assert np.all(rgb[128 + 90, 128] == (255, 220, 0))  # a contour pixel in the bone colour
     for orientation in (None, ("L", "F")):
         sc = build_sc(source, rgb, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
-                      instance_number=1, orientation=orientation)
+                      instance_number=1, orientation=orientation, content_datetime=_WHEN)
         sc.save_as(tmp_path / "sc.dcm", enforce_file_format=True)
         assert _dciodvfy_errors(tmp_path / "sc.dcm") == []
         back = pydicom.dcmread(tmp_path / "sc.dcm")

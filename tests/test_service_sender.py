@@ -122,3 +122,51 @@ def test_a_refused_association_is_a_failure_with_the_reason(tmp_path):
     finally:
         sink.stop()
         audit.close()
+
+
+def test_a_closed_port_is_reported_as_connection_refused(tmp_path):
+    port = free_port()
+    sender, audit = _sender(tmp_path, port)
+    sender.enqueue(_objects(tmp_path, 1), "case-1", "run-1")
+    assert sender.run_once() == 0
+    assert f"connection refused by 127.0.0.1:{port}" in sender.pending()[0].last_error
+    audit.close()
+
+
+def test_a_display_coming_back_gets_the_whole_queue_at_once_oldest_first(tmp_path):
+    port = free_port()
+    sender, audit = _sender(tmp_path, port, retry_initial_s=0.2, retry_max_s=600.0,
+                            max_attempts=100)
+    objects = _objects(tmp_path, 3)
+    for k, obj in enumerate(objects):  # three cases, queued one after the other
+        sender.enqueue([obj], f"case-{k}", "run-1")
+        time.sleep(0.01)
+    later = time.time()
+    for _ in range(8):  # the display stays down: every job backs off to minutes
+        later += 600.0
+        sender.run_once(now=later)
+    assert all(j.next_attempt > time.time() + 10.0 for j in sender.pending())
+    sink = ResultCollector(port=port)
+    try:
+        assert sender.run_once() == 3  # not due, but the display answers again: all go now
+        arrived = [ds.SOPInstanceUID for _, ds in sink.wait(lambda ds: True, 5.0, count=3)]
+        assert arrived == [o.sop_instance_uid for o in objects]
+        assert sender.pending() == []
+    finally:
+        sink.stop()
+        audit.close()
+
+
+def test_a_newer_run_of_a_case_replaces_its_undelivered_older_one(tmp_path):
+    sender, audit = _sender(tmp_path, free_port())
+    older, newer = _objects(tmp_path, 3)[:2], _objects(tmp_path / "..", 1)
+    other = _objects(tmp_path / "..", 1)
+    sender.enqueue(older, "case-1", "run-1")
+    sender.enqueue(other, "case-2", "run-1")
+    sender.enqueue(newer, "case-1", "run-2")
+    assert sorted((j.case_id, j.run_id) for j in sender.pending()) == [
+        ("case-1", "run-2"), ("case-2", "run-1")]
+    superseded = [e for e in read_audit(audit.path) if e["event"] == "send_superseded"]
+    assert {e["sop_instance_uid"] for e in superseded} == {o.sop_instance_uid for o in older}
+    assert all(e["by_run_id"] == "run-2" for e in superseded)
+    audit.close()

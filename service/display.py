@@ -1,0 +1,93 @@
+"""What the OR display is told, in words, when a case has no new measurement.
+
+The display only shows what it receives. A case waiting for its second view, a view that
+cannot be used, views too close in angle, a clock mismatch, a refusal: each would otherwise
+leave it blank while the surgeon waits. For each, the service sends a *status*: one Secondary
+Capture frame (the view with the message burned in, wrapped to the image width) and a short
+Comprehensive 3D SR ("not measured" with the message and what to do as TEXT items). A
+refused measurement's own SR carries the same two items.
+
+Status objects are in the case's study; their UIDs derive from the case and the situation,
+so the same situation told again after a restart is the same object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Callable
+
+import numpy as np
+from pydicom.dataset import Dataset
+
+__all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
+           "STATUS_SERIES_NUMBER"]
+
+STATUS_SERIES = "slamtka status"  # the series description of every status SR and SC
+STATUS_SERIES_NUMBER = 9703
+
+
+@dataclass(frozen=True)
+class Status:
+    """One situation of a case told to the display: ``situation`` is a short key (for the
+    audit and the benchmark), ``message`` what happened, ``action`` what to do."""
+
+    situation: str  # waiting, unusable, no_pins, no_plan, too_close, clock, refused, output_failed
+    message: str
+    action: str
+
+
+def advice(reason: str, min_separation_deg: float) -> str:
+    """What to do about a refusal ``reason`` (the pipeline's or the solver's), in words."""
+    text = reason.lower()
+    if "no plan" in text:
+        return "add the patient's plan, then re-run the case (slamtka case rerun CASE)"
+    if "too close" in text or "separation" in text:
+        return f"take another view at least {min_separation_deg:.0f} deg from the others"
+    if "usable view" in text or "view(s)" in text:
+        return f"take a second view at least {min_separation_deg:.0f} deg from the first"
+    if "calibration" in text:
+        return "check the C-arm calibration, then re-run the case (slamtka case rerun CASE)"
+    if "contour" in text or "pin" in text:
+        return "take a new view with both pins and the tibia clearly visible"
+    return "take a new pair of views; if it persists, measure by hand"
+
+
+def change_line(previous: dict | None, doc: dict) -> str | None:
+    """``"STR 6.7 -> 5.1, now within +-3"``: the change since the previous measurement."""
+    if not previous or previous.get("ctr_deg") is None or doc.get("angles") is None:
+        return None
+    a, t, d = doc["angles"], doc["target"], doc["deviation"]
+    parts = [f"{name} {previous[f'{key}_deg']:+.1f} -> {a[f'{key}_deg']:+.1f}"
+             for name, key in (("CTR", "ctr"), ("STR", "str"))
+             if abs(previous[f"{key}_deg"] - a[f"{key}_deg"]) >= 0.05]
+    verdict = "within" if d["within_tolerance"] else "outside"
+    was = "within" if previous["verdict"] == "pass" else "outside"
+    change = ", ".join(parts) or "angles unchanged"
+    return (f"{change}, now {verdict} +-{t['tolerance_deg']:.0f}"
+            + ("" if verdict == was else f" (was {was})"))
+
+
+def build_status_objects(header: Dataset, pixels: np.ndarray | None, status: Status, *,
+                         laterality: str | None, version: str, uid_for: Callable[[str], str],
+                         when: datetime, institution: str = "") -> tuple[Dataset, Dataset]:
+    """The status SR and SC of one situation, in the study of ``header`` (sanitised);
+    ``uid_for(what)`` names every UID, ``pixels`` is the view to draw on (blank when None)."""
+    from .dicom_sc import ScOverlay, build_sc, render_overlay  # highdicom, OpenCV: not for
+    from .dicom_sr import build_sr  # `slamtka status`, which imports this module's neighbours
+
+    doc = {"status": "not_measured", "reason": status.message, "inputs": None,
+           "software": {"version": version}, "case": {"laterality": laterality}}
+    sr = build_sr(doc, [header], None, series_uid=uid_for("sr-series"),
+                  sop_instance_uid=uid_for("sr"), uid_for=uid_for, content_datetime=when,
+                  institution=institution, series_number=STATUS_SERIES_NUMBER,
+                  series_description=STATUS_SERIES,
+                  notes=[("service_status", status.message), ("action", status.action)])
+    image = np.zeros((512, 512), np.uint16) if pixels is None else pixels
+    rgb = render_overlay(image, ScOverlay({}, text=["SLAMTKA: NOT MEASURED", status.message,
+                                                   "Next: " + status.action]))
+    sc = build_sc(header, rgb, series_uid=uid_for("sc-series"), sop_instance_uid=uid_for("sc"),
+                  instance_number=1, orientation=None, content_datetime=when,
+                  institution=institution, description=STATUS_SERIES,
+                  series_number=STATUS_SERIES_NUMBER)
+    return sr, sc
