@@ -266,7 +266,7 @@ class Sender:
         self._probed[name] = now
         try:  # the port first: no association attempt (and its error log) while it is closed
             socket.create_connection((dest.host, dest.port), timeout=2.0).close()
-            assoc = self._association(dest, {"1.2.840.10008.1.1"})
+            assoc, _ = self._association(dest, {"1.2.840.10008.1.1"})
         except Exception:
             return False
         if not assoc.is_established:
