@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import generate_uid
 
-from solver.imaging.phantom import PhantomSpec, simulate_phantom_set
+from solver.imaging.phantom import PhantomSpec, plate_offsets, simulate_phantom_set
 from solver.imaging.xray import default_distortion
 from solver.simulate import DETECTOR_FIELD_MM, SOURCE_TO_DETECTOR_MM, default_camera
 
@@ -39,8 +39,9 @@ def write_calibration_set(folder: Path, count: int, seed: int) -> list[Path]:
     camera = default_camera()
     distortion = default_distortion(camera)
     spec = PhantomSpec()
-    phantom = simulate_phantom_set(camera, distortion, spec, count, np.random.default_rng(seed),
-                                   plate_error_mm=PLATE_ERROR_MM, missing_balls=(_MISSING_BALL,),
+    rng = np.random.default_rng(seed)
+    phantom = simulate_phantom_set(camera, distortion, spec, count, rng,
+                                   plate_offsets(spec, PLATE_ERROR_MM, rng), missing_balls=(_MISSING_BALL,),
                                    specks=2, empty_frames=1)
     spacing = DETECTOR_FIELD_MM / camera.width
     study, series = generate_uid(), generate_uid()

@@ -235,8 +235,9 @@ class CalibrationOptions:
     refine_plate: bool = True  # estimate the balls' offsets from the perfect grid
     outlier_sigmas: float = 5.0  # a ball this many noise SDs off the fit is an outlier ...
     min_outlier_px: float = 0.75  # ... and at least this far
-    misfit_factor: float = 4.0  # a frame whose RMS is this many times the median is set aside
+    misfit_factor: float = 4.0  # a frame whose RMS is this many times the median is set aside ...
     min_misfit_px: float = 0.5
+    max_outlier_share: float = 0.3  # ... as is one with more of its balls off the fit
 
 
 @dataclass
@@ -539,14 +540,18 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
                 estimator.fit(frames, plate=True)
         m, x, result, obs = estimator.fit(frames, plate_on, robust=False)
         errors = [_rms(m, x, obs, k) for k in range(len(frames))]
+        everything = [_rms(m, x, obs, k, outliers=True) for k in range(len(frames))]
+        off = [(int(np.sum((obs.frame == k) & ~obs.active & (obs.ball >= 0))), int(np.sum((obs.frame == k) & (obs.ball >= 0))))
+               for k in range(len(frames))]
         limit = max(options.min_misfit_px, options.misfit_factor * float(np.median(errors)))
-        misfits = [k for k, e in enumerate(errors) if e > limit]
+        misfits = [k for k, e in enumerate(errors) if e > limit or off[k][0] > options.max_outlier_share * off[k][1]]
         if not misfits or len(frames) - len(misfits) < options.min_images:
             break
         for k in misfits:
-            run.set_aside(frames[k].image.name, f"does not fit the other images (RMS {errors[k]:.2f} px "
-                          f"against their median {np.median(errors):.2f} px): the plate moved "
-                          "during the exposure, or the frame is from another C-arm or setting")
+            run.set_aside(frames[k].image.name, f"does not fit the other images ({off[k][0]} of {off[k][1]} balls "
+                          f"off the fit, RMS {everything[k]:.2f} px against their median "
+                          f"{np.median(errors):.2f} px): the plate moved during the exposure, or the "
+                          "frame is from another C-arm or setting")
         frames = [f for k, f in enumerate(frames) if k not in misfits]
 
     sigmas = _sigmas(result, obs, m)
@@ -595,8 +600,10 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc), report
 
 
-def _rms(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, k: int) -> float:
-    r = bundle.ball_residuals(m, x, obs)[(obs.frame == k) & obs.active]
+def _rms(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, k: int,
+         outliers: bool = False) -> float:
+    """A frame's RMS over its balls (and, with ``outliers``, over its outliers too)."""
+    r = bundle.ball_residuals(m, x, obs)[(obs.frame == k) & (obs.active | (outliers & (obs.ball >= 0)))]
     return float(np.sqrt(np.mean(r**2))) if len(r) else float("inf")
 
 

@@ -24,7 +24,7 @@ from ..geometry import Pose, rotation_about
 from .distortion import Distortion
 from .xray import Body, XRayParams, expose, render_bodies
 
-__all__ = ["PhantomSpec", "PhantomSet", "simulate_phantom_images", "simulate_phantom_set"]
+__all__ = ["PhantomSpec", "PhantomSet", "plate_offsets", "simulate_phantom_images", "simulate_phantom_set"]
 
 _MU_STEEL = 0.9  # per mm, as XRayParams
 _MU_ACRYLIC = 0.022
@@ -99,8 +99,13 @@ def _add_speck(line_integral: np.ndarray, centre_uv: np.ndarray, radius_px: floa
     line_integral[v0 - r: v0 + r + 1, u0 - r: u0 + r + 1] += _MU_STEEL * 0.15 * chord_px
 
 
+def plate_offsets(spec: PhantomSpec, rms_mm: float, rng: np.random.Generator) -> np.ndarray:
+    """Manufacturing error of a plate: independent 3-D ball offsets (N, 3) of RMS ``rms_mm``."""
+    return rng.normal(0.0, rms_mm / np.sqrt(3.0), (spec.rows * spec.cols, 3))
+
+
 def simulate_phantom_set(camera: Camera, distortion: Distortion, spec: PhantomSpec, count: int,
-                         rng: np.random.Generator, plate_error_mm: float = 0.0,
+                         rng: np.random.Generator, plate_offsets_mm: np.ndarray | None = None,
                          missing_balls: tuple[int, ...] = (), specks: int = 0,
                          empty_frames: int = 0, duplicates: int = 0, max_tilt_deg: float = 40.0,
                          inverted_fraction: float = 0.25, clamp_fraction: float = 0.2,
@@ -108,13 +113,13 @@ def simulate_phantom_set(camera: Camera, distortion: Distortion, spec: PhantomSp
     """``count`` frames of the plate (``imgNN``), then ``empty_frames`` frames without it
     (``emptyNN``) and ``duplicates`` byte copies of earlier frames (``copyNN``).
 
-    ``plate_error_mm``: RMS of the balls' 3-D offsets from the perfect grid; ``missing_balls``:
+    ``plate_offsets_mm``: the balls' offsets (rows*cols, 3) from the perfect grid (see
+    :func:`plate_offsets`; the same ``rng`` state with and without them gives the same poses
+    and noise, so a set can be compared with its perfect-plate twin); ``missing_balls``:
     grid indices (row * cols + col) absent from the plate; ``specks``: dark specks per frame,
     the first of every frame placed where the grid would continue beyond its last column.
     """
-    plate = spec.points()
-    if plate_error_mm > 0:
-        plate = plate + rng.normal(0.0, plate_error_mm / np.sqrt(3.0), plate.shape)
+    plate = spec.points() + (0.0 if plate_offsets_mm is None else np.asarray(plate_offsets_mm, float))
     present = np.setdiff1d(np.arange(len(plate)), missing_balls)
     bodies = {clamp: _bodies(spec, clamp, plate[present]) for clamp in (False, True)}
     beyond = plate[spec.cols - 1:: spec.cols] + [spec.pitch_mm, 0.0, 0.0]  # the next column
