@@ -8,8 +8,9 @@
 - calibration on real-world sets (plate error 0.1-0.3 mm, specks, missing balls, an empty
   frame, a duplicate): share of the frames showing the grid that were used, whether the
   empty frame and the duplicate were set aside, focal length error, principal point error
-  where the set determines it, final RMS over the noise floor (the RMS of the same frames,
-  same poses and noise, rendered with a perfect plate);
+  where the set determines it, final RMS over the noise floor (both over the frames used in
+  both: the floor is the RMS of the same frames, same poses and noise, rendered with a
+  perfect plate);
 - contours: distances of extracted bone edge points to the true outline (median, p95, px),
   share of the visible true outline within 2 px of an extracted point (coverage; visible:
   inside the field margin and outside the pins' shadows), pins found and correctly
@@ -151,6 +152,13 @@ def _shows_grid(phantom: PhantomSet, name: str, camera: Camera, distortion: Dist
     return int(camera.in_field(uv, ball_px + 3.0).sum()) >= min_balls
 
 
+def _rms_over(report: dict, other: dict) -> float:
+    """RMS (px) of a calibration's balls in the frames that ``other`` used too."""
+    theirs = {e["image"] for e in other["images"] if e["used"]}
+    mine = [e for e in report["images"] if e["used"] and e["image"] in theirs]
+    return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / sum(e["balls_used"] for e in mine)))
+
+
 def _real_world_study(sets: int, images: int, seed: int) -> dict:
     """Sets as a hospital collects them: plate error 0.1-0.3 mm, two specks per frame (one
     continuing the grid), one or two balls missing, an empty frame and a duplicate."""
@@ -175,7 +183,8 @@ def _real_world_study(sets: int, images: int, seed: int) -> dict:
                                                   for n, image in zip(phantom.names, phantom.images)],
                                                  spec, options)
         phantom, (calibration, report) = sets_made["real"]
-        floor = sets_made["perfect"][1][1]["rms_px"]  # the same frames with a perfect plate
+        # The noise floor: the same frames (used in both) with a perfect plate.
+        rms, floor = (_rms_over(sets_made[kind][1][1], sets_made["perfect"][1][1]) for kind in ("real", "perfect"))
         c = calibration.camera
         entries = {e["image"]: e for e in report["images"]}
         showing = [n for n in phantom.poses if _shows_grid(phantom, n, true, distortion, spec, options.min_balls)]
@@ -190,8 +199,8 @@ def _real_world_study(sets: int, images: int, seed: int) -> dict:
             "focal_error_pct": 100.0 * abs(c.fx / true.fx - 1.0),
             "principal_point_error_px": None if held else float(np.hypot(c.cx - true.cx, c.cy - true.cy)),
             "principal_point_held": held,
-            "rms_px": report["rms_px"], "noise_floor_px": floor,
-            "rms_over_floor": report["rms_px"] / floor})
+            "rms_px": report["rms_px"], "rms_common_frames_px": rms, "noise_floor_px": floor,
+            "rms_over_floor": rms / floor})
     estimable = [r["principal_point_error_px"] for r in rows if r["principal_point_error_px"] is not None]
     return {"sets": rows, "images_per_set": images,
             "min_grid_used_pct": min(r["grid_used_pct"] for r in rows),

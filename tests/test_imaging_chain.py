@@ -258,13 +258,16 @@ def test_write_calibration_round_trips(tmp_path):
 
 def test_bench_imaging_writes_every_figure(tmp_path, capsys):
     assert main(["bench", "imaging", "--out", str(tmp_path), "--cases", "1", "--levels", "1",
-                 "--calibration-sets", "1", "--calibration-images", "8"]) == 0
+                 "--calibration-sets", "1", "--calibration-images", "8", "--real-world-sets", "1"]) == 0
     figures = json.loads((tmp_path / "imaging.json").read_text())
     assert {"median_s", "max_s", "cpu_median_s"} <= set(figures["rendering"])
     contours = figures["contours"]
     assert contours["frames"] == 2 and contours["pins_found_labelled_pct"] == 100.0
     assert contours["median_px"] <= 0.5 and contours["p95_px"] <= 2.0 and contours["coverage_min"] >= 0.9
     assert figures["calibration"]["max_focal_error_pct"] <= 0.5
+    real = figures["calibration_real_world"]
+    assert real["min_grid_used_pct"] == 100.0 and real["empty_and_duplicate_set_aside"]
+    assert real["max_focal_error_pct"] <= 0.5 and real["max_rms_over_floor"] <= 1.3  # 8 frames; 16: 1.2
     level = figures["end_to_end"]["1"]
     # One case says the chain runs through; the 0.5 deg target is for the median of a study.
     assert level["measured"] == 1 and max(level["median_ctr_abs_deg"], level["median_str_abs_deg"]) < 2.0

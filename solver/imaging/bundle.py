@@ -30,7 +30,7 @@ __all__ = ["Bundle", "Observations", "rotations", "plate_basis", "solve", "ball_
 
 N_INTRINSIC = 7  # f, cx, cy, k1, k2, t1, t2
 _PRIOR_PLATE_MM = 0.5  # the prior's SD of a ball's offset from the grid
-_PRIOR_PX = 0.3  # the pixel scale the prior is weighed against
+_PRIOR_PX = 0.05  # the pixel scale the prior is weighed against (weak: the data decide)
 
 
 @dataclass

@@ -65,6 +65,8 @@ FORMAT_V1 = "slamtka-calibration/1"
 
 REPORT_FORMAT = "slamtka-calibration-report/1"
 _PLACE_TRUNCATION_PX = 2.0  # a ball this far off a placement's fit counts as this far
+_RELABEL_ROUNDS = 3
+_RAY_PRIOR = 1e-3  # pull of the grid on a ball triangulated from rays (per ray: 1)
 
 
 class CalibrationError(ValueError):
@@ -438,20 +440,25 @@ class _Estimator:
             frame.ball, frame.pose = best[1], best[2]
 
     def _offsets(self, frames: list[_Frame]) -> np.ndarray:
-        """Plate coefficients from the frames' balls back-projected onto the plate plane."""
+        """Plate coefficients from the frames' rays: each ball is the point nearest to all
+        rays through it (in the plate frame), pulled weakly towards the grid so that a ball
+        seen in one frame only stays on the plate (its z needs two tilts)."""
         K, distortion = self._camera()
-        total, count = np.zeros((len(self.nominal), 3)), np.zeros(len(self.nominal))
+        n = len(self.nominal)
+        A, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
         for f in frames:
             a = f.active & (f.ball >= 0)
             ideal = distortion.undistort(f.uv[a])
             rays = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(K).T
             R = bundle.rotations(f.pose[None, :3])[0]
-            origin, directions = -R.T @ f.pose[3:], rays @ R  # plate frame
-            on_plate = origin + (-origin[2] / directions[:, 2])[:, None] * directions
-            np.add.at(total, f.ball[a], on_plate - self.nominal[f.ball[a]])
-            np.add.at(count, f.ball[a], 1)
-        mean = total / np.maximum(count, 1)[:, None]
-        return self.basis.T @ mean.ravel()
+            origin, d = -R.T @ f.pose[3:], rays @ R  # plate frame
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            P = np.eye(3) - d[:, :, None] * d[:, None, :]  # projectors across each ray
+            np.add.at(A, f.ball[a], P)
+            np.add.at(b, f.ball[a], P @ origin)
+        weight = _RAY_PRIOR * np.eye(3)
+        balls = np.linalg.solve(A + weight, (b + self.nominal @ weight)[..., None])[..., 0]
+        return self.basis.T @ (balls - self.nominal).ravel()
 
     def label(self, frames: list[_Frame]) -> None:
         """One physical labelling: the frame with most balls is the reference; each further
@@ -536,7 +543,9 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
         if plate_on:
             estimator.label(frames)
             estimator.fit(frames, plate=True)
-            if estimator.relabel(frames):
+            for _ in range(_RELABEL_ROUNDS):  # placements checked against the refined plate
+                if not estimator.relabel(frames):
+                    break
                 estimator.fit(frames, plate=True)
         m, x, result, obs = estimator.fit(frames, plate_on, robust=False)
         errors = [_rms(m, x, obs, k) for k in range(len(frames))]

@@ -132,6 +132,9 @@ def simulate_phantom_set(camera: Camera, distortion: Distortion, spec: PhantomSp
         t = np.array([rng.normal(0.0, 20.0), rng.normal(0.0, 20.0), rng.uniform(560.0, 760.0)])
         clamp = bool(rng.random() < clamp_fraction)
         inverted = bool(rng.random() < inverted_fraction)
+        # The exposure's own generator: its noise draws vary in number with the image, and the
+        # next frame's pose must not depend on them (a set and its perfect-plate twin).
+        noise = np.random.default_rng(rng.integers(1 << 62))
         pose = Pose(R, t)
         line_integral = render_bodies([(b, pose) for b in bodies[clamp]], camera,
                                       np.zeros(2), camera.width, camera.height)
@@ -144,7 +147,7 @@ def simulate_phantom_set(camera: Camera, distortion: Distortion, spec: PhantomSp
         name = f"img{k:02d}"
         out.names.append(name)
         out.images.append(expose(line_integral, np.zeros(2), camera,
-                                 replace(params, invert=inverted), distortion, rng))
+                                 replace(params, invert=inverted), distortion, noise))
         out.poses[name] = pose
     for k in range(empty_frames):
         out.names.append(f"empty{k:02d}")
