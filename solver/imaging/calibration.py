@@ -498,14 +498,10 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
         raise run.refuse("no calibration images given")
     found = _find_grids(_screen(images, run), spec, options, run)
     frames = [f for f, _, _ in found]
-
-    def too_few() -> CalibrationError:
-        aside = "; ".join(f"{e['image']}: {e['reason']}" for e in run.doc["images"] if e["reason"])
-        return run.refuse(f"only {len(frames)} usable images, need {options.min_images} "
-                          f"(set aside: {aside or 'none'})")
-
     if len(frames) < options.min_images:
-        raise too_few()
+        aside = "; ".join(f"{e['image']}: {e['reason']}" for e in run.doc["images"] if e["reason"])
+        raise run.refuse(f"only {len(frames)} usable images, need {options.min_images} "
+                         f"(set aside: {aside or 'none'})")
     height, width = frames[0].image.pixels.shape
     spacing = next((f.image.pixel_spacing_mm for f in frames if f.image.pixel_spacing_mm), None)
     aspect = 1.0 if spacing is None else spacing[1] / spacing[0]  # fy / fx = col / row spacing
@@ -513,62 +509,22 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     radii = [r for _, _, r in found if r is not None]
     radius = float(np.median(radii)) if radii else None
     base = Distortion(float(centre[0]), float(centre[1]), radius or max(width, height) / 2.0)
-    nominal_f = None
     sids = [f.image.sid_mm for f in frames if f.image.sid_mm]
-    if spacing is not None and sids:
-        nominal_f = float(np.median(sids)) / spacing[1]
+    nominal_f = float(np.median(sids)) / spacing[1] if spacing is not None and sids else None
 
-    # First guess: OpenCV with one focal length, principal point at the field centre.
-    plate = spec.points()
-    f0 = nominal_f or 4.0 * max(width, height)
-    K0 = np.array([[f0, 0, centre[0]], [0, f0 * aspect, centre[1]], [0, 0, 1]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
-    _, K1, _, rvecs, tvecs = cv2.calibrateCamera(
-        [plate[f.ball].astype(np.float32) for f in frames], [f.uv.astype(np.float32) for f in frames],
-        (width, height), K0, np.zeros(5), flags=flags)
-    for f, r, t in zip(frames, rvecs, tvecs):
-        f.pose = np.concatenate([r.ravel(), t.ravel()])
-        f.tilt_deg = float(np.degrees(np.arccos(abs(cv2.Rodrigues(r)[0][2, 2]))))
+    estimator = _Estimator(spec, options, base, aspect, centre)
+    _first_guess(frames, estimator, nominal_f or 4.0 * max(width, height), (width, height))
     largest = max(f.tilt_deg for f in frames)
     if largest < options.min_max_tilt_deg:
         raise run.refuse(f"all plates are nearly fronto-parallel (largest tilt {largest:.1f} deg, "
                          f"need {options.min_max_tilt_deg}); tilt the phantom")
-
-    estimator = _Estimator(spec, options, base, aspect, centre)
-    estimator.intrinsics = np.array([K1[0, 0], centre[0], centre[1], 0.0, 0.0, 0.0, 0.0])
-    plate_on = options.refine_plate
-    while True:
-        estimator.fit(frames, plate=False)
-        if plate_on:
-            estimator.label(frames)
-            estimator.fit(frames, plate=True)
-            for _ in range(_RELABEL_ROUNDS):  # placements checked against the refined plate
-                if not estimator.relabel(frames):
-                    break
-                estimator.fit(frames, plate=True)
-        m, x, result, obs = estimator.fit(frames, plate_on, robust=False)
-        errors = [_rms(m, x, obs, k) for k in range(len(frames))]
-        everything = [_rms(m, x, obs, k, outliers=True) for k in range(len(frames))]
-        off = [(int(np.sum((obs.frame == k) & ~obs.active & (obs.ball >= 0))), int(np.sum((obs.frame == k) & (obs.ball >= 0))))
-               for k in range(len(frames))]
-        limit = max(options.min_misfit_px, options.misfit_factor * float(np.median(errors)))
-        misfits = [k for k, e in enumerate(errors) if e > limit or off[k][0] > options.max_outlier_share * off[k][1]]
-        if not misfits or len(frames) - len(misfits) < options.min_images:
-            break
-        for k in misfits:
-            run.set_aside(frames[k].image.name, f"does not fit the other images ({off[k][0]} of {off[k][1]} balls "
-                          f"off the fit, RMS {everything[k]:.2f} px against their median "
-                          f"{np.median(errors):.2f} px): the plate moved during the exposure, or the "
-                          "frame is from another C-arm or setting")
-        frames = [f for k, f in enumerate(frames) if k not in misfits]
-
-    sigmas = _sigmas(result, obs, m)
-    held = bool(sigmas[1] > options.max_principal_sigma_px or sigmas[2] > options.max_principal_sigma_px)
+    frames, (m, x, result, obs) = _estimate(frames, estimator, options, run)
+    sigmas = _sigmas(result, obs)
     pp_sigma = float(max(sigmas[1], sigmas[2]))
+    held = pp_sigma > options.max_principal_sigma_px
     if held:
-        m, x, result, obs = estimator.fit(frames, plate_on, hold_principal=True, robust=False)
-        sigmas = _sigmas(result, obs, m, held=True)
+        m, x, result, obs = estimator.fit(frames, options.refine_plate, hold_principal=True, robust=False)
+        sigmas = _sigmas(result, obs, held=True)
     _fill_report(run, frames, m, x, obs, spec)
     rms = float(np.sqrt(np.mean(bundle.ball_residuals(m, x, obs)[obs.active] ** 2)))
     f, cx, cy = (float(v) for v in x[:3])
@@ -580,33 +536,86 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
                          "why": (f"the set does not determine it (standard error {pp_sigma:.1f} px > "
                                  f"{options.max_principal_sigma_px} px): held at the field centre")
                          if held else "estimated"},
-        plate=_plate_report(m, x, obs, spec))
+        plate=_plate_report(m, x, obs))
     if nominal_f is not None and abs(f / nominal_f - 1.0) > options.max_focal_deviation:
         raise run.refuse(f"estimated focal length {f:.0f} px is {100 * (f / nominal_f - 1):+.0f}% from "
                          f"the nominal SID / pixel spacing {nominal_f:.0f} px: implausible")
     if rms > options.max_rms_px:
-        worst = sorted(run.doc["images"], key=lambda e: -(e["rms_px"] or 0.0))[:3]
+        worst = sorted((e for e in run.doc["images"] if e["used"]), key=lambda e: -e["rms_px"])[:3]
         raise run.refuse(f"calibration RMS {rms:.2f} px exceeds {options.max_rms_px} px; the images "
                          "that fit worst: " + ", ".join(f"{e['image']} (RMS {e['rms_px']:.2f} px, "
                                                         f"{len(e['outlier_balls'])} outlier balls)"
-                                                        for e in worst if e["rms_px"] is not None))
+                                                        for e in worst))
     run.doc["status"] = "calibrated"
     camera = Camera(f, f * aspect, cx, cy, width, height, radius)
     distortion = base.with_params(x[3:7])
     fields = {f.image.field_mm for f in frames}
-    per_image = [{"image": e["image"], "balls": e["balls_used"], "rms_px": e["rms_px"],
-                  "tilt_deg": e["tilt_deg"], "outlier_balls": len(e["outlier_balls"])}
-                 for e in run.doc["images"] if e["used"]]
-    rejected = [{"image": e["image"], "reason": e["reason"]} for e in run.doc["images"] if not e["used"]]
-    extra = {**({"device": dict(device)} if device else {}), "rms_px": rms, "images": per_image, "rejected": rejected, "phantom": spec.to_json(),
-             "principal_point": run.doc["principal_point"], "intrinsics_sd": {
-                 n: v["sd"] for n, v in run.doc["intrinsics"].items()},
-             "plate": {k: v for k, v in run.doc["plate"].items() if k != "balls_mm"}}
     doc = calibration_document(camera, calibration_id, description or "C-arm calibration from phantom",
-                               distortion, spacing, extra,
+                               distortion, spacing, _file_extra(run.doc, spec, device),
                                field_mm=fields.pop() if len(fields) == 1 else None)
-    report = {**run.doc, "rejected": rejected, "principal_held": held, "principal_sigma_px": pp_sigma}
+    report = {**run.doc, "rejected": doc["rejected"], "principal_held": held, "principal_sigma_px": pp_sigma}
     return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc), report
+
+
+def _first_guess(frames: list[_Frame], estimator: _Estimator, focal: float, size: tuple[int, int]) -> None:
+    """Plate poses and a focal length from OpenCV (principal point at the field centre, no
+    distortion, the plate taken as perfect); each frame's tilt."""
+    plate = estimator.nominal
+    c = estimator.centre
+    K0 = np.array([[focal, 0, c[0]], [0, focal * estimator.aspect, c[1]], [0, 0, 1]])
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    _, K1, _, rvecs, tvecs = cv2.calibrateCamera(
+        [plate[f.ball].astype(np.float32) for f in frames], [f.uv.astype(np.float32) for f in frames],
+        size, K0, np.zeros(5), flags=flags)
+    for f, r, t in zip(frames, rvecs, tvecs):
+        f.pose = np.concatenate([r.ravel(), t.ravel()])
+        f.tilt_deg = float(np.degrees(np.arccos(abs(cv2.Rodrigues(r)[0][2, 2]))))
+    estimator.intrinsics = np.array([K1[0, 0], c[0], c[1], 0.0, 0.0, 0.0, 0.0])
+
+
+def _estimate(frames: list[_Frame], estimator: _Estimator, options: CalibrationOptions, run: _Run):
+    """The robust fit (plate as perfect, then the plate's own error with one physical
+    labelling), repeated without the frames that do not fit the others; returns the frames
+    used and the final (model, parameters, scipy result, observations)."""
+    while True:
+        estimator.fit(frames, plate=False)
+        if options.refine_plate:
+            estimator.label(frames)
+            estimator.fit(frames, plate=True)
+            for _ in range(_RELABEL_ROUNDS):  # placements checked against the refined plate
+                if not estimator.relabel(frames):
+                    break
+                estimator.fit(frames, plate=True)
+        m, x, result, obs = estimator.fit(frames, options.refine_plate, robust=False)
+        errors = [_rms(m, x, obs, k) for k in range(len(frames))]
+        median = float(np.median(errors))
+        limit = max(options.min_misfit_px, options.misfit_factor * median)
+        on_plate = [(obs.frame == k) & (obs.ball >= 0) for k in range(len(frames))]
+        off = [int(np.sum(mine & ~obs.active)) for mine in on_plate]
+        misfits = [k for k, e in enumerate(errors)
+                   if e > limit or off[k] > options.max_outlier_share * on_plate[k].sum()]
+        if not misfits or len(frames) - len(misfits) < options.min_images:
+            return frames, (m, x, result, obs)
+        for k in misfits:
+            run.set_aside(frames[k].image.name, f"does not fit the other images ({off[k]} of "
+                          f"{on_plate[k].sum()} balls off the fit, RMS "
+                          f"{_rms(m, x, obs, k, outliers=True):.2f} px against their median "
+                          f"{median:.2f} px): the plate moved during the exposure, or the frame is "
+                          "from another C-arm or setting")
+        frames = [f for k, f in enumerate(frames) if k not in misfits]
+
+
+def _file_extra(report: dict, spec: PhantomSpec, device: dict[str, str] | None) -> dict:
+    """What the calibration file keeps of the run's report."""
+    return {**({"device": dict(device)} if device else {}), "rms_px": report["rms_px"],
+            "images": [{"image": e["image"], "balls": e["balls_used"], "rms_px": e["rms_px"],
+                        "tilt_deg": e["tilt_deg"], "outlier_balls": len(e["outlier_balls"])}
+                       for e in report["images"] if e["used"]],
+            "rejected": [{"image": e["image"], "reason": e["reason"]} for e in report["images"] if not e["used"]],
+            "phantom": spec.to_json(), "principal_point": report["principal_point"],
+            "intrinsics_sd": {n: v["sd"] for n, v in report["intrinsics"].items()},
+            "plate": {k: v for k, v in report["plate"].items() if k != "balls_mm"}}
 
 
 def _rms(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, k: int,
@@ -616,7 +625,7 @@ def _rms(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, k: int,
     return float(np.sqrt(np.mean(r**2))) if len(r) else float("inf")
 
 
-def _sigmas(result, obs: bundle.Observations, m: bundle.Bundle, held: bool = False) -> np.ndarray:
+def _sigmas(result, obs: bundle.Observations, held: bool = False) -> np.ndarray:
     """Standard deviations of the seven intrinsics (0 for a held principal point)."""
     s = bundle.parameter_sigmas(result, 2 * int(obs.active.sum()))
     if held:
@@ -647,7 +656,7 @@ def _outlier(ball: int, uv: np.ndarray, residual: float, spec: PhantomSpec) -> d
             "residual_px": round(float(residual), 2), "why": "far off the fit"}
 
 
-def _plate_report(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, spec: PhantomSpec) -> dict:
+def _plate_report(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations) -> dict:
     if m.basis is None:
         return {"refined": False}
     offsets = m.plate(x) - m.nominal
