@@ -111,10 +111,25 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
+def _add_unreadable(report: dict, unreadable: dict[str, str]) -> None:
+    """Files that could not be read, in the report as frames not used."""
+    report["images"] += [{"image": name, "used": False, "reason": f"not readable: {why}",
+                          "balls_found": None, "balls_used": 0, "stray_blobs": 0,
+                          "outlier_balls": [], "rms_px": None, "tilt_deg": None}
+                         for name, why in unreadable.items()]
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     rows, cols = args.grid
     spec = PhantomSpec(rows, cols, args.pitch, args.ball_diameter)
-    read = [read_phantom_image(Path(p), args.pixel_spacing, args.sid) for p in args.images]
+    if args.pixel_spacing is None and any(p.suffix.lower() in IMAGE_SUFFIXES for p in args.images):
+        raise ValueError("image files carry no pixel spacing; give --pixel-spacing MM")
+    read, unreadable = [], {}
+    for path in args.images:
+        try:
+            read.append(read_phantom_image(Path(path), args.pixel_spacing, args.sid))
+        except ValueError as exc:  # one damaged file is set aside, not the run
+            unreadable[Path(path).name] = str(exc).removeprefix(f"{path}: ")
     images = [image for image, _ in read]
     devices = {tuple(sorted(d.items())) for _, d in read}
     report_path = args.report or args.out.with_name(args.out.stem + ".report.json")
@@ -127,10 +142,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                                         calibration_id, args.description, device)
     except CalibrationError as exc:
         if exc.report is not None:
+            _add_unreadable(exc.report, unreadable)
             write_json_atomic(report_path, exc.report)
             print(format_report(exc.report))
             print(f"report -> {report_path}")
         raise ValueError(f"calibration failed: {exc}") from None
+    _add_unreadable(report, unreadable)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out, calibration.document())
     write_json_atomic(report_path, report)

@@ -118,10 +118,15 @@ def test_calibrate_reads_image_files_and_always_writes_its_report(real_set, tmp_
         paths.append(str(path))
     out = tmp_path / "carm.json"
     assert main(["calibrate", *paths, "--out", str(out)]) == 2
-    assert "an image file carries no pixel spacing; give --pixel-spacing MM" in capsys.readouterr().err
-    assert main(["calibrate", *paths, "--pixel-spacing", str(SPACING[0]), "--sid", "1000", "--out", str(out)]) == 0
+    assert "image files carry no pixel spacing; give --pixel-spacing MM" in capsys.readouterr().err
+    damaged = tmp_path / "damaged.dcm"
+    damaged.write_bytes(b"not DICOM at all")
+    assert main(["calibrate", *paths, str(damaged), "--pixel-spacing", str(SPACING[0]), "--sid", "1000",
+                 "--out", str(out)]) == 0
     report = json.loads((tmp_path / "carm.report.json").read_text())
     assert report["status"] == "calibrated" and load_calibration(out).pixel_spacing_mm == SPACING
+    assert report["images"][-1]["image"] == "damaged.dcm"
+    assert report["images"][-1]["reason"].startswith("not readable: not a readable DICOM file")
     assert "copy00.png: not used (duplicate: the same pixels as img00.png)" in capsys.readouterr().out
     refused = tmp_path / "refused.json"
     assert main(["calibrate", *paths, "--pixel-spacing", str(SPACING[0]), "--min-images", "40",
