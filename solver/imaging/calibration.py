@@ -64,7 +64,8 @@ FORMAT_V1 = "slamtka-calibration/1"
 
 
 REPORT_FORMAT = "slamtka-calibration-report/1"
-_PLACE_TRUNCATION_PX = 2.0  # a ball this far off a placement's fit counts as this far
+_PLACE_SIGMAS = 3.0  # a ball further off a placement's fit (in noise SDs) counts as this far
+_MIN_PLACE_CAP_PX = 0.05
 _RELABEL_ROUNDS = 3
 _RAY_PRIOR = 1e-3  # pull of the grid on a ball triangulated from rays (per ray: 1)
 
@@ -236,7 +237,7 @@ class CalibrationOptions:
     max_rms_px: float = 1.0
     refine_plate: bool = True  # estimate the balls' offsets from the perfect grid
     outlier_sigmas: float = 5.0  # a ball this many noise SDs off the fit is an outlier ...
-    min_outlier_px: float = 0.75  # ... and at least this far
+    min_outlier_px: float = 0.2  # ... and at least this far
     misfit_factor: float = 4.0  # a frame whose RMS is this many times the median is set aside ...
     min_misfit_px: float = 0.5
     max_outlier_share: float = 0.3  # ... as is one with more of its balls off the fit
@@ -361,6 +362,7 @@ class _Estimator:
         self.basis = bundle.plate_basis(self.nominal) if options.refine_plate else None
         self.plate_x = None if self.basis is None else np.zeros(self.basis.shape[1])
         self.intrinsics = np.zeros(bundle.N_INTRINSIC)
+        self.sigma = 1.0  # the fit's noise SD per axis (px), as last estimated
 
     def model(self, frames: list[_Frame], plate: bool) -> tuple[bundle.Bundle, np.ndarray]:
         m = bundle.Bundle(self.nominal, self.basis if plate else None, self.base, self.aspect, len(frames))
@@ -390,6 +392,7 @@ class _Estimator:
             x, result = bundle.solve(m, x, obs, lower, upper, free, 1.0 if robust else None)
             r = bundle.ball_residuals(m, x, obs)
             sigma = float(np.median(r[obs.active])) / 1.1774  # Rayleigh median -> SD per axis
+            self.sigma = sigma
             active = (r <= max(self.options.outlier_sigmas * sigma, self.options.min_outlier_px)) & (obs.ball >= 0)
             if np.array_equal(active, obs.active):
                 break
@@ -414,10 +417,11 @@ class _Estimator:
     def _place(self, frame: _Frame, plate: np.ndarray) -> None:
         """Put the frame on the placement of its grid that fits ``plate`` best (pose with it).
 
-        The score is a truncated squared error over the frame's balls (a point beyond the
-        plate, or far off, costs the truncation), so a speck continuing the lattice does not
-        pull the placement by a step."""
+        The score is a squared error over the frame's balls truncated at a few noise SDs (a
+        point beyond the plate, or far off, costs the truncation), so a speck continuing the
+        lattice does not pull the placement by a step."""
         K, distortion = self._camera()
+        cap = max(_PLACE_SIGMAS * self.sigma, _MIN_PLACE_CAP_PX) ** 2
         ideal = distortion.undistort(frame.uv).astype(np.float64)
         best = None
         for ball, _, _ in placements(frame.grid, self.spec.rows, self.spec.cols):
@@ -431,9 +435,9 @@ class _Estimator:
                     break
                 projected = cv2.projectPoints(plate[np.maximum(ball, 0)], rvec, tvec, K, None)[0]
                 r2 = np.where(ball >= 0, np.sum((projected.reshape(-1, 2) - ideal) ** 2, axis=1), np.inf)
-                use = frame.active & (r2 < _PLACE_TRUNCATION_PX**2)
+                use = frame.active & (r2 < max(4.0 * cap, 1.0))  # far off: a speck, say
             else:
-                score = float(np.sum(np.minimum(r2[frame.active], _PLACE_TRUNCATION_PX**2)))
+                score = float(np.sum(np.minimum(r2[frame.active], cap)))
                 if best is None or score < best[0]:
                     best = score, ball, np.concatenate([rvec.ravel(), tvec.ravel()])
         if best is not None:
