@@ -5,6 +5,12 @@
 - calibration: simulated phantom sets (random true principal point and focal length, the
   default intensifier distortion): focal length error (%), principal point error (px),
   residual distortion after correction (RMS px over the field of what no pinhole explains), share of images whose grid was found;
+- calibration on real-world sets (plate error 0.1-0.3 mm, specks, missing balls, an empty
+  frame, a duplicate): share of the frames showing the grid that were used, whether the
+  empty frame and the duplicate were set aside, focal length error, principal point error
+  where the set determines it, final RMS over the noise floor (both over the frames used in
+  both: the floor is the RMS of the same frames, same poses and noise, rendered with a
+  perfect plate);
 - contours: distances of extracted bone edge points to the true outline (median, p95, px),
   share of the visible true outline within 2 px of an extracted point (coverage; visible:
   inside the field margin and outside the pins' shadows), pins found and correctly
@@ -28,10 +34,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from solver.camera import Camera
-from solver.imaging.calibration import CalibrationImage, calibrate
+from solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
 from solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
 from solver.imaging.distortion import Distortion
-from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
+from solver.imaging.phantom import (
+    PhantomSet,
+    PhantomSpec,
+    plate_offsets,
+    simulate_phantom_images,
+    simulate_phantom_set,
+)
 from solver.imaging.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
 from solver.observations import ViewObservation
 from solver.plan import Plan
@@ -99,15 +111,20 @@ def residual_distortion_px(true_camera: Camera, true_distortion: Distortion,
     return float(np.sqrt(np.mean(np.sum((corrected - mapped) ** 2, axis=1))))
 
 
+def _true_camera(nominal: Camera, rng: np.random.Generator) -> Camera:
+    """A C-arm of the nominal kind: focal length within 3%, principal point within 10 px."""
+    f = nominal.fx * rng.uniform(0.97, 1.03)
+    return Camera(f, f, nominal.cx + rng.uniform(-10, 10), nominal.cy + rng.uniform(-10, 10),
+                  nominal.width, nominal.height, nominal.fov_radius_px)
+
+
 def _calibration_study(sets: int, images: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     nominal = default_camera()
     spacing = DETECTOR_FIELD_MM / nominal.width
     rows = []
     for _ in range(sets):
-        f = nominal.fx * rng.uniform(0.97, 1.03)
-        true = Camera(f, f, nominal.cx + rng.uniform(-10, 10), nominal.cy + rng.uniform(-10, 10),
-                      nominal.width, nominal.height, nominal.fov_radius_px)
+        true = _true_camera(nominal, rng)
         distortion = default_distortion(true)
         phantom = simulate_phantom_images(true, distortion, PhantomSpec(), images, rng)
         calibration, report = calibrate([CalibrationImage(f"img{i:02d}", image, (spacing, spacing), 1000.0)
@@ -124,6 +141,74 @@ def _calibration_study(sets: int, images: int, seed: int) -> dict:
             **{f"max_{k}": max(r[k] for r in rows) for k in
                ("focal_error_pct", "principal_point_error_px", "residual_distortion_rms_px")},
             "min_grid_found_pct": min(r["grid_found_pct"] for r in rows)}
+
+
+def _shows_grid(phantom: PhantomSet, name: str, camera: Camera, distortion: Distortion,
+                spec: PhantomSpec, min_balls: int) -> bool:
+    """Whether a frame shows enough balls of the plate, clear of the field's rim, to be used."""
+    plate = phantom.plate_mm[~np.isnan(phantom.plate_mm[:, 0])]
+    uv = distortion.distort(camera.project(phantom.poses[name].apply(plate)))
+    ball_px = spec.ball_diameter_mm * camera.fx / phantom.poses[name].t[2]
+    return int(camera.in_field(uv, ball_px + 3.0).sum()) >= min_balls
+
+
+def _rms_over(report: dict, other: dict) -> float:
+    """RMS (px) of a calibration's balls in the frames that ``other`` used too."""
+    theirs = {e["image"] for e in other["images"] if e["used"]}
+    mine = [e for e in report["images"] if e["used"] and e["image"] in theirs]
+    return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / sum(e["balls_used"] for e in mine)))
+
+
+def _real_world_study(sets: int, images: int, seed: int) -> dict:
+    """Sets as a hospital collects them: plate error 0.1-0.3 mm, two specks per frame (one
+    continuing the grid), one or two balls missing, an empty frame and a duplicate."""
+    rng = np.random.default_rng(seed + 1000)
+    nominal = default_camera()
+    spacing = DETECTOR_FIELD_MM / nominal.width
+    spec, options = PhantomSpec(), CalibrationOptions()
+    rows = []
+    for _ in range(sets):
+        true = _true_camera(nominal, rng)
+        distortion = default_distortion(true)
+        plate_error = float(rng.uniform(0.1, 0.3))
+        missing = tuple(int(i) for i in rng.choice(spec.rows * spec.cols, int(rng.integers(1, 3)), replace=False))
+        offsets = plate_offsets(spec, plate_error, rng)
+        state = rng.bit_generator.state
+        sets_made = {}
+        for kind, plate in (("real", offsets), ("perfect", None)):
+            rng.bit_generator.state = state  # the same poses and noise, with and without the error
+            phantom = simulate_phantom_set(true, distortion, spec, images, rng, plate, missing_balls=missing,
+                                           specks=2, empty_frames=1, duplicates=1)
+            sets_made[kind] = phantom, calibrate([CalibrationImage(n, image, (spacing, spacing), 1000.0)
+                                                  for n, image in zip(phantom.names, phantom.images)],
+                                                 spec, options)
+        phantom, (calibration, report) = sets_made["real"]
+        # The noise floor: the same frames (used in both) with a perfect plate.
+        rms, floor = (_rms_over(sets_made[kind][1][1], sets_made["perfect"][1][1]) for kind in ("real", "perfect"))
+        c = calibration.camera
+        entries = {e["image"]: e for e in report["images"]}
+        showing = [n for n in phantom.poses if _shows_grid(phantom, n, true, distortion, spec, options.min_balls)]
+        held = report["principal_held"]
+        rows.append({
+            "plate_error_true_mm": plate_error, "missing_balls": len(missing),
+            "plate_error_estimated_rms_mm": report["plate"]["error_rms_mm"],
+            "grid_used_pct": 100.0 * sum(entries[n]["used"] for n in showing) / max(len(showing), 1),
+            "frames_showing_grid": len(showing),
+            "set_aside_right": all(not entries[n]["used"] for n in phantom.notes),
+            "outlier_balls": sum(len(e["outlier_balls"]) for e in report["images"]),
+            "focal_error_pct": 100.0 * abs(c.fx / true.fx - 1.0),
+            "principal_point_error_px": None if held else float(np.hypot(c.cx - true.cx, c.cy - true.cy)),
+            "principal_point_held": held,
+            "rms_px": report["rms_px"], "rms_common_frames_px": rms, "noise_floor_px": floor,
+            "rms_over_floor": rms / floor})
+    estimable = [r["principal_point_error_px"] for r in rows if r["principal_point_error_px"] is not None]
+    return {"sets": rows, "images_per_set": images,
+            "min_grid_used_pct": min(r["grid_used_pct"] for r in rows),
+            "empty_and_duplicate_set_aside": all(r["set_aside_right"] for r in rows),
+            "max_focal_error_pct": max(r["focal_error_pct"] for r in rows),
+            "max_principal_point_error_px": max(estimable) if estimable else None,
+            "principal_point_held_sets": sum(r["principal_point_held"] for r in rows),
+            "max_rms_over_floor": max(r["rms_over_floor"] for r in rows)}
 
 
 def _timed(wall: list[float], cpu: list[float], fn: Callable[..., Result], *args) -> Result:
@@ -186,6 +271,7 @@ def run_imaging(args: argparse.Namespace) -> int:
                      "extraction_median_s": float(np.median(extract_s)), "extraction_max_s": float(np.max(extract_s)),
                      "extraction_cpu_median_s": float(np.median(extract_cpu_s))},
         "calibration": _calibration_study(args.calibration_sets, args.calibration_images, args.seed),
+        "calibration_real_world": _real_world_study(args.real_world_sets, args.calibration_images, args.seed),
         "end_to_end": {str(level): {
             "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
             "cases": args.cases, "measured": len(r["ctr_abs_deg"]),
@@ -201,7 +287,8 @@ def run_imaging(args: argparse.Namespace) -> int:
 
 
 def _summary(r: dict) -> str:
-    rd, c, cal = r["rendering"], r["contours"], r["calibration"]
+    rd, c, cal, real = r["rendering"], r["contours"], r["calibration"], r["calibration_real_world"]
+    pp = real["max_principal_point_error_px"]
     lines = [
         f"rendering: median {rd['median_s']:.2f} s, max {rd['max_s']:.2f} s per 1024x1024 frame "
         f"(CPU median {rd['cpu_median_s']:.2f} s; first frame {rd['first_s']:.2f} s incl. distortion maps), "
@@ -210,6 +297,13 @@ def _summary(r: dict) -> str:
         f"{cal['max_focal_error_pct']:.3f}%, principal point error max {cal['max_principal_point_error_px']:.2f} px, "
         f"residual distortion max {cal['max_residual_distortion_rms_px']:.3f} px RMS, grid found min "
         f"{cal['min_grid_found_pct']:.0f}%",
+        f"calibration, real-world sets: {len(real['sets'])} sets x {real['images_per_set']} images (+ an empty "
+        f"frame and a duplicate; plate error 0.1-0.3 mm, specks, missing balls): grid used in "
+        f"{real['min_grid_used_pct']:.0f}% (min) of the frames showing it, empty and duplicate set aside: "
+        f"{'yes' if real['empty_and_duplicate_set_aside'] else 'NO'}, focal error max "
+        f"{real['max_focal_error_pct']:.3f}%, principal point error max "
+        f"{'n/a' if pp is None else f'{pp:.2f} px'} ({real['principal_point_held_sets']} sets held it), "
+        f"final RMS / noise floor max {real['max_rms_over_floor']:.2f}",
         f"contours: {c['frames']} frames: bone edge distance median {c['median_px']:.2f} px, p95 "
         f"{c['p95_px']:.2f} px, coverage median {100 * c['coverage_median']:.1f}% (min "
         f"{100 * c['coverage_min']:.1f}%), pins found and labelled {c['pins_found_labelled_pct']:.0f}%, "
@@ -232,6 +326,8 @@ def add_imaging_bench_parser(kinds: argparse._SubParsersAction) -> None:
                    help="initial-noise levels for the end-to-end solves")
     p.add_argument("--calibration-sets", type=int, default=3)
     p.add_argument("--calibration-images", type=int, default=16)
+    p.add_argument("--real-world-sets", type=int, default=3,
+                   help="simulated real-world phantom sets (plate error, specks, missing balls, ...)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True)
     p.set_defaults(func=run_imaging)

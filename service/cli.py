@@ -3,7 +3,7 @@
 Its own sub-commands: ``simulate`` (write a simulated case folder), ``solve`` (measure a case
 folder), ``demo`` (simulate and solve the built-in phantom). The others are registered by the
 modules that implement them: ``bench`` (accuracy, link, service, speed, degenerate, imaging,
-hardening), ``calibrate``, ``carm-sim``, ``plan``, ``status``, ``replay``, ``serve`` and
+hardening), ``calibrate``, ``calibration``, ``carm-sim``, ``plan``, ``status``, ``replay``, ``serve`` and
 ``theatre``; ``slamtka --help`` lists them.
 """
 
@@ -26,6 +26,8 @@ from solver.slam import METHODS, SolverConfig, solve_joint
 
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser
+from .calibrations import add_calibration_parser
+from .sim_calibration import write_calibration_set
 from .case_cli import add_case_parser
 from .sim_images import write_case_images
 from .plans import add_plan_parser
@@ -52,6 +54,11 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    if getattr(args, "calibration_images", None) is not None:
+        paths = write_calibration_set(args.out, args.calibration_images, args.seed)
+        print(f"wrote a simulated phantom set of {len(paths)} DICOM frames to {args.out} "
+              f"(calibrate it with: slamtka calibrate {args.out}/*.dcm --out carm.json)")
+        return 0
     if args.tibia is None:
         plan = Plan.phantom(args.side)
     elif args.landmarks is None:
@@ -151,6 +158,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--images", action="store_true",
                    help="also render the views as DICOM X-ray frames with their true outlines")
+    p.add_argument("--calibration-images", type=int, metavar="N",
+                   help="instead of a case, write N phantom frames of the simulated C-arm (plus an "
+                        "empty frame and a duplicate) for `slamtka calibrate`")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("solve", help="measure the resection plane of a case folder")
@@ -168,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_parser(sub)
     add_calibrate_parser(sub)
     add_case_parser(sub)
+    add_calibration_parser(sub)
     add_carm_sim_parser(sub)
     add_plan_parser(sub)
     add_status_parser(sub)

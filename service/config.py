@@ -219,7 +219,8 @@ class CarmConfig:
     by them at start.
     """
 
-    calibration: Path | None = None
+    calibration: Path | None = None  # the default: C-arms without their own (service.calibrations)
+    calibration_match: str = "device_serial_number"  # or station_name, calling_ae_title
     encoder_port: str = ""  # serial device; empty: no link, DICOM positioner angles only
     max_reading_age_s: float = 0.1
     angle_check_deg: float = 3.0  # encoder vs DICOM positioner beam direction
@@ -234,8 +235,9 @@ class CarmConfig:
         from drivers.encoder_link import LinkConfig
         from drivers.kinematics import CArmKinematics, PatientSetup
 
-        if self.calibration is None:
-            raise ConfigError(f"{where}.calibration: the C-arm calibration file is required")
+        if self.calibration_match not in ("device_serial_number", "station_name", "calling_ae_title"):
+            raise ConfigError(f"{where}.calibration_match: {self.calibration_match!r} must be "
+                              "'device_serial_number', 'station_name' or 'calling_ae_title'")
         _check_range(f"{where}.angle_check_deg", self.angle_check_deg, 0.1, 45.0)
         _check_range(f"{where}.max_clock_offset_s", self.max_clock_offset_s, 0.0, 60.0)
         for key, parse in (("link", LinkConfig.from_config),

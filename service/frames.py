@@ -37,7 +37,7 @@ from pydicom.uid import (
     generate_uid,
 )
 
-__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "SOP_CLASSES",
+__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "SOP_CLASSES", "SIMULATED_SERIAL",
            "XA_IMAGE_STORAGE", "ENHANCED_XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
 
 XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1")
@@ -70,6 +70,9 @@ _FUNCTIONAL_GROUP_ATTRIBUTES = (
     ("FrameAnatomySequence", "FrameLaterality", "ImageLaterality"),
 )
 _FUNCTIONAL_GROUPS = ("SharedFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence")
+
+
+SIMULATED_SERIAL = "SIM-0001"  # the Device Serial Number of the simulated C-arm
 
 
 class FrameError(ValueError):
@@ -133,6 +136,7 @@ def _ds(value: float) -> str:
 
 
 def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: str = "SIMCARM",
+                 device_serial_number: str = SIMULATED_SERIAL, intensifier_size_mm: float | None = None,
                  kvp: float = 70.0, tube_current_ma: float = 5.0, exposure_time_ms: float = 200.0,
                  study_id: str = "1", series_number: int = 1) -> Dataset:
     """The frame as an XA (default) or RF Image Storage instance with its file meta.
@@ -172,6 +176,8 @@ def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: s
     ds.Laterality = frame.laterality or ""
     # General Equipment
     ds.Manufacturer, ds.StationName = manufacturer, station_name
+    if device_serial_number:
+        ds.DeviceSerialNumber = device_serial_number
     # General Image / Acquisition
     ds.InstanceNumber = frame.instance_number
     ds.PatientOrientation = ""
@@ -195,6 +201,8 @@ def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: s
     ds.Exposure = int(round(tube_current_ma * exposure_time_ms / 1000.0))
     ds.ImagerPixelSpacing = [_ds(s) for s in frame.imager_pixel_spacing_mm]
     ds.FieldOfViewShape = "ROUND"
+    if intensifier_size_mm is not None:
+        ds.IntensifierSize = _ds(intensifier_size_mm)
     if frame.sid_mm is not None:
         ds.DistanceSourceToDetector = _ds(frame.sid_mm)
     if frame.sod_mm is not None:

@@ -36,6 +36,7 @@ from solver.observations import LABELS, ViewObservation
 from solver.plan import Plan
 from solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
 
+from .calibrations import CalibrationSet, choose_for_run
 from .cases import Case, View, run_id_of
 from .dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
 from .dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
@@ -106,10 +107,14 @@ def plane_polygon(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
 class Pipeline:
     """Runs cases; everything it needs is built once at service start."""
 
-    def __init__(self, spool: Spool, plans: PlanStore, calibration, geometry: ViewGeometry,
+    def __init__(self, spool: Spool, plans: PlanStore, calibrations, geometry: ViewGeometry,
                  output_root: Path, *, manual_contours_dir: Path | None = None,
                  institution: str = ""):
-        self.spool, self.plans, self.calibration, self.geometry = spool, plans, calibration, geometry
+        """``calibrations``: a :class:`CalibrationSet` (per C-arm), or one calibration for all."""
+        self.spool, self.plans, self.geometry = spool, plans, geometry
+        self.calibrations = (calibrations if isinstance(calibrations, CalibrationSet)
+                             else CalibrationSet([], calibrations))
+        self.calibration = None  # of the run (or arriving view) being worked on
         self.output_root = Path(output_root)
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
         self._extracted: OrderedDict[str, tuple[dict | None, str]] = OrderedDict()
@@ -180,8 +185,11 @@ class Pipeline:
         except ValueError:
             return
         T = self.geometry.initial_views(plan, [view.pairing], [view.positioner]).T_cam_tibia[0]
-        frame = decode_frame(self.spool.read(view.entry))
-        if self.calibration.check_frame(frame) is None:
+        ds = self.spool.read(view.entry)
+        frame = decode_frame(ds)
+        calibration, _ = self.calibrations.select(ds, frame)
+        if calibration is not None and calibration.check_frame(frame) is None:
+            self.calibration = calibration
             self._extract(plan, view, frame, T, self._planned_pins(plan))
 
     def view_contours(self, case: Case, view: View) -> tuple[dict[str, np.ndarray] | None, str]:
@@ -290,7 +298,8 @@ class Pipeline:
             sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used, i.left_out)
                      for i in items] + refused,
             outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=observations,
-            calibration={"id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
+            calibration=None if self.calibration is None else {
+                "id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
             initial=initial, reasons=reasons, timings=timings,
             outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
                      "sr_sop_instance_uid": uids["sr"],
@@ -337,10 +346,20 @@ class Pipeline:
 
     def _check_calibration(self, items: list[_ViewInput], recorder: CaseRecorder,
                            reasons: list[str]) -> None:
-        recorder.stage("calibration", self.calibration.calibration_id)
-        recorder.calibration(self.calibration.document())
+        """Pick the run's calibration (per C-arm and detector field); views it does not fit
+        are left out, saying why."""
+        selected = []
         for item in items:
-            problem = self.calibration.check_frame(item.frame)
+            calibration, problem = self.calibrations.select(item.header, item.frame)
+            selected.append((calibration, problem or calibration.check_frame(item.frame)))
+        self.calibration = choose_for_run(selected)
+        recorder.stage("calibration", self.calibration.calibration_id if self.calibration else "none")
+        if self.calibration is not None:
+            recorder.calibration(self.calibration.document())
+        for item, (calibration, problem) in zip(items, selected):
+            if problem is None and calibration is not self.calibration:
+                problem = (f"needs calibration {calibration.calibration_id}, the run uses "
+                           f"{self.calibration.calibration_id} (views from two C-arms or fields)")
             if problem:
                 item.left_out = problem
                 reasons.append(f"{item.view_id}: {problem}")

@@ -210,6 +210,8 @@ class DicomReceiver:
                                 encapsulated=syntax.is_encapsulated)
             ds = event.dataset
             ds.file_meta = event.file_meta
+            # Who sent it, kept with it (PS3.10): a calibration may be chosen by it.
+            ds.file_meta.SourceApplicationEntityTitle = peer["calling_ae"]
             refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,
                                      request_uid)
         except DatasetError as exc:

@@ -71,11 +71,11 @@ class Service:
         self.spool = Spool(config.spool_dir)
         # Imported here, not at the top: `slamtka status` (the container's health check) and the
         # other commands then start without loading rerun, highdicom and the imaging chain.
-        from solver.imaging.calibration import load_calibration
-
+        from .calibrations import CalibrationSet
         from .pipeline import Pipeline
 
-        self.calibration = load_calibration(config.carm.calibration)
+        self.calibrations = CalibrationSet.load(config.data_dir / "calibrations", config.carm.calibration,
+                                                config.carm.calibration_match)
         kinematics = CArmKinematics.from_config(config.carm.kinematics)
         self.link = None
         if config.carm.encoder_port:
@@ -84,7 +84,7 @@ class Service:
                                 config.carm.max_reading_age_s, config.carm.angle_check_deg,
                                 config.carm.max_clock_offset_s)
         self.plans = PlanStore(config.plans)
-        self.pipeline = Pipeline(self.spool, self.plans, self.calibration, geometry, config.output,
+        self.pipeline = Pipeline(self.spool, self.plans, self.calibrations, geometry, config.output,
                                  manual_contours_dir=config.pipeline.manual_contours_dir,
                                  institution=config.institution)
         self.assembler = CaseAssembler(self.spool, geometry, config.pipeline.min_view_separation_deg,
@@ -110,8 +110,7 @@ class Service:
             "last_result": lambda: self._last_result, "link": self._link_status,
             "queue": lambda: {"pending": len(self.sender.pending()),
                               "failed": len(self.sender.failed())},
-            "metrics": self.metrics.snapshot, "calibration": lambda: {
-                "id": self.calibration.calibration_id, "sha256": self.calibration.sha256}})
+            "metrics": self.metrics.snapshot, "calibration": self.calibrations.describe})
 
     # -- status sections ------------------------------------------------------------------
     def _dicom_status(self) -> dict:

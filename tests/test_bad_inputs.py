@@ -16,7 +16,7 @@ from pydicom.uid import RLELossless
 
 from drivers.encoder_link import LinkConfig
 from drivers.kinematics import CArmKinematics
-from service.calibrate import _read as read_calibration_image
+from service.calibrate import read_phantom_image as read_calibration_image
 from service.cli import main
 from service.config import ConfigError, config_from_dict
 from service.frames import Frame, FrameError, decode_frame, encode_frame

@@ -49,7 +49,7 @@ def test_relative_paths_are_relative_to_the_file(tmp_path):
     ({"dicom": {"allowed_calling_ae_titles": ["BAD\\AE"]}}, "not a valid AE title"),
     ({"dicom": {"allowed_calling_ae_titles": ["CARM"], "tls": {"enabled": True}}},
      "dicom.tls.certificate: required when TLS is enabled"),
-    ({"carm": {}}, "carm.calibration: the C-arm calibration file is required"),
+    ({"carm": {"calibration_match": "serial"}}, "carm.calibration_match: 'serial' must be"),
     ({"carm": {"calibration": "c", "kinematics": {"sid_nominal_mm": 5}}}, "carm.kinematics:"),
     ({"carm": {"calibration": "c", "setup": {"superior_carm": [0, 0, 1]}}}, "carm.setup:"),
     ({"destinations": [{"name": "x", "ae_title": "PACS", "host": "h", "objects": ["pdf"]}]},

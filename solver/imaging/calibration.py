@@ -1,33 +1,36 @@
-"""C-arm calibration from ball-grid phantom images, and the versioned calibration file.
+"""C-arm calibration from ball-plate phantom images, and the versioned calibration file.
 
-Estimation (:func:`calibrate`):
+Estimation (:func:`calibrate`), made for real sets (issue 29):
 
-1. Balls are found in each image's attenuation (any polarity, inside the circular field,
-   vignetting removed by a local median background) as compact blobs of the expected size;
-   blobs cut by the rim of the field or merged with other metal are refused. Their centres
-   are attenuation-weighted centroids.
-2. The grid: neighbouring balls give the two lattice directions; integer grid coordinates
-   are propagated from the central ball, each step predicted from the last observed step,
-   so perspective and distortion do not break it and missing balls are simply absent. The
-   grid is symmetric and the plate transparent, so any consistent labelling is a valid pose.
-3. A first guess (OpenCV, one focal length, principal point fixed at the field's centre, no
-   distortion) gives each plate pose; then all parameters are refined jointly (bundle
-   adjustment with scipy): one focal length (square pixels, or the known pixel aspect), the
-   principal point bounded to ``max_principal_offset_px`` of the field's centre, the
-   image-intensifier distortion (``solver.imaging.distortion``, centred on the field) and
-   every plate pose.
+1. Screening: frames of another size or pixel spacing than the set's, and byte copies of an
+   earlier frame, are set aside by name.
+2. Each frame's balls and their grid (:mod:`solver.imaging.ballgrid`): a frame without the
+   phantom, or whose grid cannot be found, is set aside with the reason; a speck or a
+   missing ball costs that ball, not the frame.
+3. A first guess (OpenCV, one focal length, principal point at the field's centre, no
+   distortion), then a robust bundle adjustment (:mod:`solver.imaging.bundle`) of the focal
+   length, principal point, intensifier distortion and every plate pose, the plate taken as
+   perfect; balls far off the fit are outliers, removed and reported.
+4. The plate's own error: the frames are placed on one physical labelling of the balls (a
+   frame alone knows its grid only up to the square's symmetries; the placement that fits
+   the plate seen so far is chosen), then the ball offsets are estimated jointly with
+   everything else. The pitch is only a scale: it changes no intrinsic.
+5. Frames that still do not fit the others (RMS far above the median) are set aside by name.
 
-Guards: unconstrained C-arm calibrations are known to return unequal focal lengths and
-principal points off the image; here the focal lengths are tied, the principal point is
-bounded, a principal point that the set cannot determine (its standard error above
-``max_principal_sigma_px``) is held at the field's centre, and a focal length far from the
-nominal ``SID / pixel spacing`` is refused. Sets with too few usable images, with all plates
-nearly fronto-parallel, or with inconsistent image sizes or pixel spacings are refused.
+Guards: the focal lengths are tied (square pixels, or the detector's aspect), the principal
+point is bounded to ``max_principal_offset_px`` of the field's centre and held there (and
+reported so) when the set cannot determine it (standard error above
+``max_principal_sigma_px``); a focal length far from the nominal ``SID / pixel spacing`` is
+refused, as are sets with too few usable frames, all plates nearly fronto-parallel, or a
+final RMS above ``max_rms_px``. Every run produces a report (:func:`calibrate` returns it;
+a refusal carries it on the :class:`CalibrationError`).
 
 File (DESIGN.md section 6), ``slamtka-calibration/2``: id, description, creation time,
-detector (size and pixel spacing), camera (K and field radius), distortion, RMS overall and
-per image, rejected images with their reason, the phantom, and a sha256 over the rest.
-Version 1 files (no distortion, no pixel spacing) still load.
+detector (size, pixel spacing, field size when known), camera (K and field radius),
+distortion, RMS overall and per image, rejected images with their reason, the phantom, the
+estimated plate error, the intrinsics' standard deviations, optionally the C-arm it belongs
+to (``device``), and a sha256 over the rest. Version 1 files (no distortion, no pixel
+spacing) still load.
 """
 
 from __future__ import annotations
@@ -38,28 +41,42 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
+from collections import Counter
+
 import cv2
 import numpy as np
-from scipy import ndimage
-from scipy.optimize import least_squares
 
 from ..camera import Camera
 from ..jsonfile import read_json_object
+from . import bundle
+from .ballgrid import GridError, detect_balls, match_grid, placements
 from .distortion import Distortion
-from .field import FieldError, attenuation, field_of_view
+from .field import FieldError, field_of_view
 from .phantom import PhantomSpec
 
 __all__ = ["Calibration", "CalibrationError", "CalibrationOptions", "CalibrationImage",
            "calibrate", "detect_balls", "match_grid", "load_calibration", "calibration_document",
-           "write_calibration",
-           "FORMAT", "FORMAT_V1"]
+           "write_calibration", "assign_device",
+           "FORMAT", "FORMAT_V1", "REPORT_FORMAT"]
 
 FORMAT = "slamtka-calibration/2"
 FORMAT_V1 = "slamtka-calibration/1"
 
 
+REPORT_FORMAT = "slamtka-calibration-report/1"
+_PLACE_SIGMAS = 3.0  # a ball further off a placement's fit (in noise SDs) counts as this far
+_MIN_PLACE_CAP_PX = 0.05
+_RELABEL_ROUNDS = 3
+_RAY_PRIOR = 1e-3  # pull of the grid on a ball triangulated from rays (per ray: 1)
+
+
 class CalibrationError(ValueError):
-    """A calibration set, file or frame that cannot be used, with the reason."""
+    """A calibration set, file or frame that cannot be used, with the reason; a refused
+    calibration run also carries its report (``report``)."""
+
+    def __init__(self, message: str, report: dict | None = None):
+        super().__init__(message)
+        self.report = report
 
 
 # -- the calibration as the pipeline uses it ------------------------------------------------
@@ -78,6 +95,17 @@ class Calibration:
     def document(self) -> dict:
         """The calibration file's content (for audit records)."""
         return self._document
+
+    @property
+    def device(self) -> dict[str, str]:
+        """The C-arm this calibration belongs to (identity key -> value), if assigned."""
+        return dict(self._document.get("device") or {})
+
+    @property
+    def field_mm(self) -> float | None:
+        """The detector field (intensifier size / zoom) it was made for, when known."""
+        value = (self._document.get("detector") or {}).get("field_mm")
+        return None if value is None else float(value)
 
     def undistort_points(self, uv: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixel positions (N, 2) of raw observed positions (N, 2)."""
@@ -128,15 +156,29 @@ def _digest(body: dict) -> str:
 def calibration_document(camera: Camera, calibration_id: str, description: str,
                          distortion: Distortion | None = None,
                          pixel_spacing_mm: tuple[float, float] | None = None,
-                         extra: dict | None = None) -> dict:
+                         extra: dict | None = None, field_mm: float | None = None) -> dict:
     """The versioned, checksummed calibration file content."""
     body = {"format": FORMAT, "id": calibration_id, "description": description,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "detector": {"width": camera.width, "height": camera.height,
-                         "pixel_spacing_mm": None if pixel_spacing_mm is None else list(pixel_spacing_mm)},
+                         "pixel_spacing_mm": None if pixel_spacing_mm is None else list(pixel_spacing_mm),
+                         "field_mm": field_mm},
             "camera": camera.to_json(),
             "distortion": {"model": "none"} if distortion is None else distortion.to_json(),
             **(extra or {})}
+    return {**body, "sha256": _digest(body)}
+
+
+def assign_device(document: dict, device: dict[str, str], field_mm: float | None) -> dict:
+    """The calibration document bound to one C-arm (``device``: its identity, e.g. Device
+    Serial Number) and detector field, re-checksummed; the original checksum is kept."""
+    body = {k: v for k, v in document.items() if k != "sha256"}
+    detector = dict(body.get("detector") or {})
+    if field_mm is not None:
+        detector["field_mm"] = float(field_mm)
+    body.update(detector=detector, device=dict(device),
+                assigned={"at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                          "original_sha256": document.get("sha256")})
     return {**body, "sha256": _digest(body)}
 
 
@@ -183,101 +225,7 @@ def load_calibration(path: str | Path) -> Calibration:
     return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc)
 
 
-# -- ball detection and the grid ------------------------------------------------------------
-
-def detect_balls(image: np.ndarray, ball_diameter_px: tuple[float, float] = (8.0, 60.0),
-                 polarity: str = "auto", min_contrast: float = 0.25) -> np.ndarray:
-    """Centres (N, 2) of ball shadows: compact blobs of a plausible size, not cut by the rim."""
-    centre, radius, outside, sign = field_of_view(np.asarray(image), polarity)
-    A = attenuation(image, outside, sign)
-    h, w = A.shape
-    v, u = np.mgrid[0:h, 0:w]
-    r = np.hypot(u - centre[0], v - centre[1])
-    lit = r < (radius if radius is not None else np.inf) - 1.0
-    A = np.where(lit, A, np.median(A[lit])).astype(np.float32)
-    # Background at a scale several balls wide (median ignores the balls themselves).
-    small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
-    lo, hi = np.percentile(small, [1, 99])
-    q = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-    k = int(ball_diameter_px[1] / 4) | 1
-    background = cv2.medianBlur(q, max(5, 2 * k + 1)).astype(np.float32) / 255 * (hi - lo) + lo
-    excess = A - cv2.resize(background, (w, h), interpolation=cv2.INTER_LINEAR)
-    blobs = (excess > min_contrast) & lit
-    count, labels, stats, centroids = cv2.connectedComponentsWithStats(blobs.astype(np.uint8), connectivity=8)
-    d_lo, d_hi = ball_diameter_px
-    area = stats[:, cv2.CC_STAT_AREA].astype(float)
-    bw, bh = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]
-    fill = area / np.maximum(bw * bh, 1)
-    round_ = (np.abs(bw - bh) <= 0.35 * np.maximum(bw, bh)) & (fill > 0.6)
-    sized = (area >= np.pi / 4 * d_lo**2) & (area <= np.pi / 4 * d_hi**2)
-    # A blob touching the rim of the field is partly hidden: its centroid is biased.
-    far = np.sqrt(area / np.pi) + 3.0
-    inside = np.linalg.norm(centroids - centre, axis=1) + far < (radius if radius is not None else np.inf)
-    keep = round_ & sized & inside
-    keep[0] = False
-    index = np.nonzero(keep)[0]
-    if len(index) == 0:
-        return np.zeros((0, 2))
-    weights = np.where(blobs, excess, 0.0)
-    mass = ndimage.sum(weights, labels, index)
-    cu = ndimage.sum(weights * u, labels, index) / mass
-    cv = ndimage.sum(weights * v, labels, index) / mass
-    return np.column_stack([cu, cv])
-
-
-def match_grid(points: np.ndarray, rows: int, cols: int, min_balls: int) -> tuple[np.ndarray, np.ndarray]:
-    """Grid coordinates of detected balls: (indices into ``points``, (K, 2) integer (col, row)).
-
-    Raises :class:`CalibrationError` when no consistent grid of at least ``min_balls`` is found.
-    """
-    if len(points) < min_balls:
-        raise CalibrationError(f"only {len(points)} balls found, need {min_balls}")
-    d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    np.fill_diagonal(d, np.inf)
-    spacing = float(np.median(d.min(axis=1)))
-    start = int(np.argmin(np.linalg.norm(points - np.median(points, axis=0), axis=1)))
-    near = np.argsort(d[start])[:4]
-    steps = points[near] - points[start]
-    a = steps[0]
-    b = steps[int(np.argmin(np.abs(steps @ a) / (np.linalg.norm(steps, axis=1) * np.linalg.norm(a))))]
-    coords = {start: (0, 0)}
-    basis = {start: (a, b)}
-    queue = [start]
-    taken = {(0, 0): start}
-    while queue:
-        i = queue.pop(0)
-        ci, (ai, bi) = coords[i], basis[i]
-        for step, delta in ((ai, (1, 0)), (-ai, (-1, 0)), (bi, (0, 1)), (-bi, (0, -1))):
-            target = (ci[0] + delta[0], ci[1] + delta[1])
-            guess = points[i] + step
-            j = int(np.argmin(np.linalg.norm(points - guess, axis=1)))
-            if np.linalg.norm(points[j] - guess) > 0.3 * spacing:
-                continue
-            if j in coords:
-                if coords[j] != target:
-                    raise CalibrationError("ball positions do not form a consistent grid")
-                continue
-            if target in taken:
-                raise CalibrationError("two balls claim the same grid position")
-            observed = points[j] - points[i]
-            new_a = observed * delta[0] if delta[0] else ai
-            new_b = observed * delta[1] if delta[1] else bi
-            coords[j], basis[j], taken[target] = target, (new_a, new_b), j
-            queue.append(j)
-    index = np.array(list(coords))
-    grid = np.array([coords[i] for i in index])
-    grid -= grid.min(axis=0)
-    span = grid.max(axis=0) + 1
-    if not ((span[0] <= cols and span[1] <= rows) or (span[0] <= rows and span[1] <= cols)):
-        raise CalibrationError(f"the balls span {span[0]}x{span[1]} positions, more than the "
-                               f"{cols}x{rows} grid: another object looks like a ball")
-    if len(index) < min_balls:
-        raise CalibrationError(f"only {len(index)} balls form a grid, need {min_balls}")
-    return index, grid
-
-
-# -- estimation -----------------------------------------------------------------------------
-
+# -- estimation
 @dataclass(frozen=True)
 class CalibrationOptions:
     min_images: int = 6
@@ -287,6 +235,12 @@ class CalibrationOptions:
     max_principal_sigma_px: float = 8.0  # beyond: the set cannot fix it, hold it at the centre
     max_focal_deviation: float = 0.15  # from SID / pixel spacing, when both are known
     max_rms_px: float = 1.0
+    refine_plate: bool = True  # estimate the balls' offsets from the perfect grid
+    outlier_sigmas: float = 5.0  # a ball this many noise SDs off the fit is an outlier ...
+    min_outlier_px: float = 0.2  # ... and at least this far
+    misfit_factor: float = 4.0  # a frame whose RMS is this many times the median is set aside ...
+    min_misfit_px: float = 0.5
+    max_outlier_share: float = 0.3  # ... as is one with more of its balls off the fit
 
 
 @dataclass
@@ -297,152 +251,423 @@ class CalibrationImage:
     pixels: np.ndarray
     pixel_spacing_mm: tuple[float, float] | None = None
     sid_mm: float | None = None
+    field_mm: float | None = None  # intensifier / detector field size, when the frame says
 
 
-def _project(params: np.ndarray, views: list[np.ndarray], aspect: float,
-             base: Distortion) -> list[np.ndarray]:
-    """Pixels of each view's plate points (``views``, plate frame) under the calibration
-    ``params``: focal length, principal point, distortion, then each view's plate pose."""
-    f, cx, cy = params[:3]
-    distortion = base.with_params(params[3:7])
-    out = []
-    for k, pts in enumerate(views):
-        rvec, tvec = params[7 + 6 * k: 10 + 6 * k], params[10 + 6 * k: 13 + 6 * k]
-        R = cv2.Rodrigues(rvec)[0]
-        p = pts @ R.T + tvec
-        uv = np.column_stack([f * p[:, 0] / p[:, 2] + cx, f * aspect * p[:, 1] / p[:, 2] + cy])
-        out.append(distortion.distort(uv))
-    return out
+@dataclass
+class _Frame:
+    """A frame whose grid was found, through the estimation."""
+
+    image: CalibrationImage
+    uv: np.ndarray  # (K, 2) ball centres, px
+    grid: np.ndarray  # (K, 2) the frame's own grid coordinates
+    ball: np.ndarray  # (K,) plate ball index under the current placement
+    pose: np.ndarray  # (6,) rotation vector, translation (mm): T_cam_plate
+    active: np.ndarray  # (K,) not an outlier
+    tilt_deg: float = 0.0
+
+
+class _Run:
+    """The report of one calibration run, filled in as the run goes."""
+
+    def __init__(self, images: list[CalibrationImage], spec: PhantomSpec, calibration_id: str):
+        self.doc: dict = {"format": REPORT_FORMAT, "calibration_id": calibration_id,
+                          "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                          "status": "running", "refusal": None, "phantom": spec.to_json(),
+                          "images": []}
+        self.entries = {}
+        for im in images:
+            entry = {"image": im.name, "used": False, "reason": None, "balls_found": None,
+                     "balls_used": 0, "stray_blobs": 0, "outlier_balls": [], "rms_px": None,
+                     "tilt_deg": None}
+            self.entries.setdefault(im.name, entry)
+            self.doc["images"].append(entry)
+
+    def set_aside(self, name: str, reason: str) -> None:
+        self.entries[name].update(used=False, reason=reason)
+
+    def refuse(self, message: str) -> CalibrationError:
+        self.doc.update(status="refused", refusal=message)
+        return CalibrationError(message, self.doc)
+
+
+def _screen(images: list[CalibrationImage], run: _Run) -> list[CalibrationImage]:
+    """The frames of the set's size and spacing, each once; the rest set aside by name."""
+    shape = Counter(im.pixels.shape for im in images).most_common(1)[0][0]
+    spacings = Counter(im.pixel_spacing_mm for im in images if im.pixel_spacing_mm is not None)
+    spacing = spacings.most_common(1)[0][0] if spacings else None
+    seen: dict[str, str] = {}
+    kept = []
+    for im in images:
+        digest = hashlib.sha256(np.ascontiguousarray(im.pixels).tobytes()).hexdigest()
+        if im.pixels.shape != shape:
+            run.set_aside(im.name, f"different size {im.pixels.shape[1]}x{im.pixels.shape[0]} px "
+                                   f"from the set's {shape[1]}x{shape[0]} px")
+        elif im.pixel_spacing_mm is not None and im.pixel_spacing_mm != spacing:
+            run.set_aside(im.name, f"different pixel spacing {list(im.pixel_spacing_mm)} mm from "
+                                   f"the set's {list(spacing)} mm")
+        elif digest in seen:
+            run.set_aside(im.name, f"duplicate: the same pixels as {seen[digest]}")
+        else:
+            seen[digest] = im.name
+            kept.append(im)
+    return kept
+
+
+def _find_grids(images: list[CalibrationImage], spec: PhantomSpec, options: CalibrationOptions,
+                run: _Run) -> list[tuple[_Frame, np.ndarray, float | None]]:
+    """Frames whose grid was found, with their field's centre and radius."""
+    found = []
+    for im in images:
+        entry = run.entries[im.name]
+        try:
+            centre, radius, _, _ = field_of_view(im.pixels, "auto")
+            balls = detect_balls(im.pixels)
+            entry["balls_found"] = len(balls)
+            if len(balls) < 4:
+                raise GridError(f"no phantom in the image ({len(balls)} ball-like blobs)")
+            index, grid = match_grid(balls, spec.rows, spec.cols, options.min_balls)
+        except (GridError, FieldError) as exc:
+            run.set_aside(im.name, str(exc))
+            continue
+        entry["stray_blobs"] = len(balls) - len(index)
+        ball = placements(grid, spec.rows, spec.cols)[0][0]
+        found.append((_Frame(im, balls[index], grid, ball, np.zeros(6), np.ones(len(index), bool)),
+                      centre, radius))
+    return found
+
+
+def _observations(frames: list[_Frame]) -> bundle.Observations:
+    return bundle.Observations(np.concatenate([np.full(len(f.uv), k) for k, f in enumerate(frames)]),
+                               np.concatenate([f.ball for f in frames]),
+                               np.concatenate([f.uv for f in frames]),
+                               np.concatenate([f.active & (f.ball >= 0) for f in frames]))
+
+
+def _store(frames: list[_Frame], model: bundle.Bundle, x: np.ndarray, obs: bundle.Observations) -> None:
+    """Write the solved poses and outlier flags back into the frames."""
+    poses = x[bundle.N_INTRINSIC: bundle.N_INTRINSIC + 6 * len(frames)].reshape(-1, 6)
+    for k, f in enumerate(frames):
+        f.pose = poses[k].copy()
+        f.active = obs.active[obs.frame == k] | (f.ball < 0)  # beyond the plate is no outlier
+
+
+class _Estimator:
+    """The bundle adjustment of a set of frames, with outliers removed between solves."""
+
+    def __init__(self, spec: PhantomSpec, options: CalibrationOptions, base: Distortion,
+                 aspect: float, centre: np.ndarray):
+        self.spec, self.options, self.base, self.aspect, self.centre = spec, options, base, aspect, centre
+        self.nominal = spec.points()
+        self.basis = bundle.plate_basis(self.nominal) if options.refine_plate else None
+        self.plate_x = None if self.basis is None else np.zeros(self.basis.shape[1])
+        self.intrinsics = np.zeros(bundle.N_INTRINSIC)
+        self.sigma = 1.0  # the fit's noise SD per axis (px), as last estimated
+
+    def model(self, frames: list[_Frame], plate: bool) -> tuple[bundle.Bundle, np.ndarray]:
+        m = bundle.Bundle(self.nominal, self.basis if plate else None, self.base, self.aspect, len(frames))
+        x = np.concatenate([self.intrinsics, *[f.pose for f in frames],
+                            self.plate_x if plate and self.plate_x is not None else []])
+        return m, x
+
+    def bounds(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        off = self.options.max_principal_offset_px
+        lower, upper = np.full(len(x), -np.inf), np.full(len(x), np.inf)
+        c = self.centre
+        lower[:7] = [0.2 * x[0], c[0] - off, c[1] - off, -0.5, -0.5, -0.2, -0.2]
+        upper[:7] = [5.0 * x[0], c[0] + off, c[1] + off, 0.5, 0.5, 0.2, 0.2]
+        return lower, upper
+
+    def fit(self, frames: list[_Frame], plate: bool, hold_principal: bool = False,
+            robust: bool = True) -> tuple[bundle.Bundle, np.ndarray, object, bundle.Observations]:
+        """Solve, flag outliers (all observations judged afresh), solve again until stable."""
+        m, x = self.model(frames, plate)
+        if hold_principal:
+            x[1:3] = self.centre
+        free = np.ones(len(x), bool)
+        free[1:3] = not hold_principal
+        obs = _observations(frames)
+        lower, upper = self.bounds(x)
+        for _ in range(4):
+            x, result = bundle.solve(m, x, obs, lower, upper, free, 1.0 if robust else None)
+            r = bundle.ball_residuals(m, x, obs)
+            sigma = float(np.median(r[obs.active])) / 1.1774  # Rayleigh median -> SD per axis
+            self.sigma = sigma
+            active = (r <= max(self.options.outlier_sigmas * sigma, self.options.min_outlier_px)) & (obs.ball >= 0)
+            if np.array_equal(active, obs.active):
+                break
+            obs.active = active
+        self.intrinsics = x[: bundle.N_INTRINSIC].copy()
+        if plate:
+            self.plate_x = x[bundle.N_INTRINSIC + 6 * len(frames):].copy()
+        _store(frames, m, x, obs)
+        return m, x, result, obs
+
+    # -- the plate's physical labelling ---------------------------------------------------
+    def _camera(self) -> tuple[np.ndarray, Distortion]:
+        f, cx, cy = self.intrinsics[:3]
+        K = np.array([[f, 0, cx], [0, f * self.aspect, cy], [0, 0, 1]])
+        return K, self.base.with_params(self.intrinsics[3:7])
+
+    def _plate(self) -> np.ndarray:
+        if self.basis is None or self.plate_x is None:
+            return self.nominal
+        return self.nominal + (self.basis @ self.plate_x).reshape(-1, 3)
+
+    def _place(self, frame: _Frame, plate: np.ndarray) -> None:
+        """Put the frame on the placement of its grid that fits ``plate`` best (pose with it).
+
+        The score is a squared error over the frame's balls truncated at a few noise SDs (a
+        point beyond the plate, or far off, costs the truncation), so a speck continuing the
+        lattice does not pull the placement by a step."""
+        K, distortion = self._camera()
+        cap = max(_PLACE_SIGMAS * self.sigma, _MIN_PLACE_CAP_PX) ** 2
+        ideal = distortion.undistort(frame.uv).astype(np.float64)
+        best = None
+        for ball, _, _ in placements(frame.grid, self.spec.rows, self.spec.cols):
+            use = frame.active & (ball >= 0)
+            for _ in range(2):  # solve, then again without the points far off
+                if use.sum() < 6:
+                    break
+                ok, rvec, tvec = cv2.solvePnP(plate[ball[use]], ideal[use], K, None,
+                                              flags=cv2.SOLVEPNP_ITERATIVE)
+                if not ok or tvec[2, 0] <= 0:
+                    break
+                projected = cv2.projectPoints(plate[np.maximum(ball, 0)], rvec, tvec, K, None)[0]
+                r2 = np.where(ball >= 0, np.sum((projected.reshape(-1, 2) - ideal) ** 2, axis=1), np.inf)
+                use = frame.active & (r2 < max(4.0 * cap, 1.0))  # far off: a speck, say
+            else:
+                score = float(np.sum(np.minimum(r2[frame.active], cap)))
+                if best is None or score < best[0]:
+                    best = score, ball, np.concatenate([rvec.ravel(), tvec.ravel()])
+        if best is not None:
+            frame.ball, frame.pose = best[1], best[2]
+
+    def _offsets(self, frames: list[_Frame]) -> np.ndarray:
+        """Plate coefficients from the frames' rays: each ball is the point nearest to all
+        rays through it (in the plate frame), pulled weakly towards the grid so that a ball
+        seen in one frame only stays on the plate (its z needs two tilts)."""
+        K, distortion = self._camera()
+        n = len(self.nominal)
+        A, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
+        for f in frames:
+            a = f.active & (f.ball >= 0)
+            ideal = distortion.undistort(f.uv[a])
+            rays = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(K).T
+            R = bundle.rotations(f.pose[None, :3])[0]
+            origin, d = -R.T @ f.pose[3:], rays @ R  # plate frame
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            P = np.eye(3) - d[:, :, None] * d[:, None, :]  # projectors across each ray
+            np.add.at(A, f.ball[a], P)
+            np.add.at(b, f.ball[a], P @ origin)
+        weight = _RAY_PRIOR * np.eye(3)
+        balls = np.linalg.solve(A + weight, (b + self.nominal @ weight)[..., None])[..., 0]
+        return self.basis.T @ (balls - self.nominal).ravel()
+
+    def label(self, frames: list[_Frame]) -> None:
+        """One physical labelling: the frame with most balls is the reference; each further
+        frame takes the placement that fits the plate estimated from those before it."""
+        order = sorted(range(len(frames)), key=lambda k: -int(frames[k].active.sum()))
+        placed = [frames[order[0]]]
+        self.plate_x = self._offsets(placed)
+        for k in order[1:]:
+            self._place(frames[k], self._plate())
+            placed.append(frames[k])
+            self.plate_x = self._offsets(placed)
+
+    def relabel(self, frames: list[_Frame]) -> bool:
+        """Check every frame's placement against the refined plate; whether any changed."""
+        changed = False
+        plate = self._plate()
+        for f in frames:
+            before = f.ball.copy()
+            self._place(f, plate)
+            changed |= not np.array_equal(before, f.ball)
+        return changed
 
 
 def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
               options: CalibrationOptions = CalibrationOptions(), calibration_id: str = "carm",
-              description: str = "") -> tuple[Calibration, dict]:
-    """Estimate a :class:`Calibration` from phantom frames; also returns a report.
+              description: str = "", device: dict[str, str] | None = None) -> tuple[Calibration, dict]:
+    """Estimate a :class:`Calibration` from phantom frames; also returns the run's report.
 
-    Frames where the grid is not found are reported by name in the report (and the file),
-    not fatal; a set that cannot determine the camera raises :class:`CalibrationError`.
+    ``device``: the identity of the C-arm the frames came from (e.g. its Device Serial
+    Number), stored in the file so that the service picks the calibration for its frames.
+
+    Frames that cannot be used are set aside by name in the report (and the file); a set
+    that cannot determine the camera raises :class:`CalibrationError` carrying the report.
     """
+    run = _Run(images, spec, calibration_id)
     if not images:
-        raise CalibrationError("no calibration images given")
-    shapes = {im.pixels.shape for im in images}
-    if len(shapes) != 1:
-        raise CalibrationError(f"images have different sizes {sorted(shapes)}; one C-arm, one size")
-    spacings = {im.pixel_spacing_mm for im in images if im.pixel_spacing_mm is not None}
-    if len(spacings) > 1:
-        raise CalibrationError(f"images have different pixel spacings {sorted(spacings)}")
-    spacing = next(iter(spacings)) if spacings else None
-    height, width = next(iter(shapes))
+        raise run.refuse("no calibration images given")
+    found = _find_grids(_screen(images, run), spec, options, run)
+    frames = [f for f, _, _ in found]
+    if len(frames) < options.min_images:
+        aside = "; ".join(f"{e['image']}: {e['reason']}" for e in run.doc["images"] if e["reason"])
+        raise run.refuse(f"only {len(frames)} usable images, need {options.min_images} "
+                         f"(set aside: {aside or 'none'})")
+    height, width = frames[0].image.pixels.shape
+    spacing = next((f.image.pixel_spacing_mm for f in frames if f.image.pixel_spacing_mm), None)
     aspect = 1.0 if spacing is None else spacing[1] / spacing[0]  # fy / fx = col / row spacing
-
-    used, rejected, fields = [], [], []
-    for im in images:
-        try:
-            centre, radius, _, _ = field_of_view(im.pixels, "auto")
-            balls = detect_balls(im.pixels)
-            index, grid = match_grid(balls, spec.rows, spec.cols, options.min_balls)
-        except (CalibrationError, FieldError) as exc:
-            rejected.append({"image": im.name, "reason": str(exc)})
-            continue
-        # Grid (col, row) -> plate point; any consistent labelling is a valid plate pose.
-        plate_points = np.column_stack([(grid[:, 0] - (spec.cols - 1) / 2) * spec.pitch_mm,
-                                        (grid[:, 1] - (spec.rows - 1) / 2) * spec.pitch_mm,
-                                        np.zeros(len(grid))])
-        used.append((im, plate_points, balls[index]))
-        fields.append((centre, radius))
-    if len(used) < options.min_images:
-        names = "; ".join(f"{r['image']}: {r['reason']}" for r in rejected) or "none rejected"
-        raise CalibrationError(f"only {len(used)} usable images, need {options.min_images} "
-                               f"(rejected: {names})")
-    centre = np.median([c for c, _ in fields], axis=0)
-    radii = [r for _, r in fields if r is not None]
+    centre = np.median([c for _, c, _ in found], axis=0)
+    radii = [r for _, _, r in found if r is not None]
     radius = float(np.median(radii)) if radii else None
     base = Distortion(float(centre[0]), float(centre[1]), radius or max(width, height) / 2.0)
+    sids = [f.image.sid_mm for f in frames if f.image.sid_mm]
+    nominal_f = float(np.median(sids)) / spacing[1] if spacing is not None and sids else None
 
-    nominal = None
-    sids = [im.sid_mm for im, _, _ in used if im.sid_mm]
-    if spacing is not None and sids:
-        nominal = float(np.median(sids)) / spacing[1]
-    # First guess: OpenCV with one focal length, principal point at the field centre.
-    f0 = nominal or 4.0 * max(width, height)
-    K0 = np.array([[f0, 0, centre[0]], [0, f0 * aspect, centre[1]], [0, 0, 1]])
+    estimator = _Estimator(spec, options, base, aspect, centre)
+    _first_guess(frames, estimator, nominal_f or 4.0 * max(width, height), (width, height))
+    largest = max(f.tilt_deg for f in frames)
+    if largest < options.min_max_tilt_deg:
+        raise run.refuse(f"all plates are nearly fronto-parallel (largest tilt {largest:.1f} deg, "
+                         f"need {options.min_max_tilt_deg}); tilt the phantom")
+    frames, (m, x, result, obs) = _estimate(frames, estimator, options, run)
+    sigmas = _sigmas(result, obs)
+    pp_sigma = float(max(sigmas[1], sigmas[2]))
+    held = pp_sigma > options.max_principal_sigma_px
+    if held:
+        m, x, result, obs = estimator.fit(frames, options.refine_plate, hold_principal=True, robust=False)
+        sigmas = _sigmas(result, obs, held=True)
+    _fill_report(run, frames, m, x, obs, spec)
+    rms = float(np.sqrt(np.mean(bundle.ball_residuals(m, x, obs)[obs.active] ** 2)))
+    f, cx, cy = (float(v) for v in x[:3])
+    names = ("f_px", "cx_px", "cy_px", "k1", "k2", "t1_rad", "t2_rad")
+    run.doc.update(
+        rms_px=rms, used=len(frames), observations=int(obs.active.sum()),
+        intrinsics={n: {"value": float(v), "sd": float(s)} for n, v, s in zip(names, x[:7], sigmas)},
+        principal_point={"held_at_field_centre": held, "sigma_px": pp_sigma,
+                         "why": (f"the set does not determine it (standard error {pp_sigma:.1f} px > "
+                                 f"{options.max_principal_sigma_px} px): held at the field centre")
+                         if held else "estimated"},
+        plate=_plate_report(m, x, obs))
+    if nominal_f is not None and abs(f / nominal_f - 1.0) > options.max_focal_deviation:
+        raise run.refuse(f"estimated focal length {f:.0f} px is {100 * (f / nominal_f - 1):+.0f}% from "
+                         f"the nominal SID / pixel spacing {nominal_f:.0f} px: implausible")
+    if rms > options.max_rms_px:
+        worst = sorted((e for e in run.doc["images"] if e["used"]), key=lambda e: -e["rms_px"])[:3]
+        raise run.refuse(f"calibration RMS {rms:.2f} px exceeds {options.max_rms_px} px; the images "
+                         "that fit worst: " + ", ".join(f"{e['image']} (RMS {e['rms_px']:.2f} px, "
+                                                        f"{len(e['outlier_balls'])} outlier balls)"
+                                                        for e in worst))
+    run.doc["status"] = "calibrated"
+    camera = Camera(f, f * aspect, cx, cy, width, height, radius)
+    distortion = base.with_params(x[3:7])
+    fields = {f.image.field_mm for f in frames}
+    doc = calibration_document(camera, calibration_id, description or "C-arm calibration from phantom",
+                               distortion, spacing, _file_extra(run.doc, spec, device),
+                               field_mm=fields.pop() if len(fields) == 1 else None)
+    report = {**run.doc, "rejected": doc["rejected"], "principal_held": held, "principal_sigma_px": pp_sigma}
+    return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc), report
+
+
+def _first_guess(frames: list[_Frame], estimator: _Estimator, focal: float, size: tuple[int, int]) -> None:
+    """Plate poses and a focal length from OpenCV (principal point at the field centre, no
+    distortion, the plate taken as perfect); each frame's tilt."""
+    plate = estimator.nominal
+    c = estimator.centre
+    K0 = np.array([[focal, 0, c[0]], [0, focal * estimator.aspect, c[1]], [0, 0, 1]])
     flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
              | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
     _, K1, _, rvecs, tvecs = cv2.calibrateCamera(
-        [p.astype(np.float32) for _, p, _ in used], [o.astype(np.float32) for _, _, o in used],
-        (width, height), K0, np.zeros(5), flags=flags)
-    tilts = [np.degrees(np.arccos(abs(cv2.Rodrigues(r)[0][2, 2]))) for r in rvecs]
-    if max(tilts) < options.min_max_tilt_deg:
-        raise CalibrationError(f"all plates are nearly fronto-parallel (largest tilt {max(tilts):.1f} deg, "
-                               f"need {options.min_max_tilt_deg}); tilt the phantom")
+        [plate[f.ball].astype(np.float32) for f in frames], [f.uv.astype(np.float32) for f in frames],
+        size, K0, np.zeros(5), flags=flags)
+    for f, r, t in zip(frames, rvecs, tvecs):
+        f.pose = np.concatenate([r.ravel(), t.ravel()])
+        f.tilt_deg = float(np.degrees(np.arccos(abs(cv2.Rodrigues(r)[0][2, 2]))))
+    estimator.intrinsics = np.array([K1[0, 0], c[0], c[1], 0.0, 0.0, 0.0, 0.0])
 
-    off = options.max_principal_offset_px
-    poses = [np.concatenate([r.ravel(), t.ravel()]) for r, t in zip(rvecs, tvecs)]
-    for _ in range(2):
-        # A frame whose balls were mislabelled fits far worse than the others: drop it, refit.
-        observed = np.concatenate([o for _, _, o in used])
-        views = [p for _, p, _ in used]
 
-        def residuals(x: np.ndarray) -> np.ndarray:
-            return (np.concatenate(_project(x, views, aspect, base)) - observed).ravel()
+def _estimate(frames: list[_Frame], estimator: _Estimator, options: CalibrationOptions, run: _Run):
+    """The robust fit (plate as perfect, then the plate's own error with one physical
+    labelling), repeated without the frames that do not fit the others; returns the frames
+    used and the final (model, parameters, scipy result, observations)."""
+    while True:
+        estimator.fit(frames, plate=False)
+        if options.refine_plate:
+            estimator.label(frames)
+            estimator.fit(frames, plate=True)
+            for _ in range(_RELABEL_ROUNDS):  # placements checked against the refined plate
+                if not estimator.relabel(frames):
+                    break
+                estimator.fit(frames, plate=True)
+        m, x, result, obs = estimator.fit(frames, options.refine_plate, robust=False)
+        errors = [_rms(m, x, obs, k) for k in range(len(frames))]
+        median = float(np.median(errors))
+        limit = max(options.min_misfit_px, options.misfit_factor * median)
+        on_plate = [(obs.frame == k) & (obs.ball >= 0) for k in range(len(frames))]
+        off = [int(np.sum(mine & ~obs.active)) for mine in on_plate]
+        misfits = [k for k, e in enumerate(errors)
+                   if e > limit or off[k] > options.max_outlier_share * on_plate[k].sum()]
+        if not misfits or len(frames) - len(misfits) < options.min_images:
+            return frames, (m, x, result, obs)
+        for k in misfits:
+            run.set_aside(frames[k].image.name, f"does not fit the other images ({off[k]} of "
+                          f"{on_plate[k].sum()} balls off the fit, RMS "
+                          f"{_rms(m, x, obs, k, outliers=True):.2f} px against their median "
+                          f"{median:.2f} px): the plate moved during the exposure, or the frame is "
+                          "from another C-arm or setting")
+        frames = [f for k, f in enumerate(frames) if k not in misfits]
 
-        x0 = np.concatenate([[K1[0, 0], centre[0], centre[1], 0.0, 0.0, 0.0, 0.0], *poses])
-        lower = np.full(len(x0), -np.inf)
-        upper = np.full(len(x0), np.inf)
-        lower[:7] = [0.2 * x0[0], centre[0] - off, centre[1] - off, -0.5, -0.5, -0.2, -0.2]
-        upper[:7] = [5.0 * x0[0], centre[0] + off, centre[1] + off, 0.5, 0.5, 0.2, 0.2]
-        solution = least_squares(residuals, x0, bounds=(lower, upper), x_scale="jac", method="trf")
-        errors = [np.sqrt(np.mean(np.sum((p - o) ** 2, axis=1))) for p, (_, _, o) in
-                  zip(_project(solution.x, views, aspect, base), used)]
-        worst = max(0.5, 5.0 * float(np.median(errors)))
-        bad = [k for k, e in enumerate(errors) if e > worst]
-        if not bad or len(used) - len(bad) < options.min_images:
-            break
-        rejected += [{"image": used[k][0].name, "reason": f"does not fit the other images "
-                      f"(RMS {errors[k]:.2f} px): grid mislabelled or plate moved"} for k in bad]
-        used = [u for k, u in enumerate(used) if k not in bad]
-        poses = [q for k, q in enumerate(poses) if k not in bad]
-        tilts = [t for k, t in enumerate(tilts) if k not in bad]
-    x = solution.x
-    J = solution.jac
-    dof = max(1, len(solution.fun) - len(x))
-    sigma2 = float(solution.fun @ solution.fun) / dof
-    try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
-        pp_sigma = float(np.sqrt(max(cov[1, 1], cov[2, 2])))
-    except np.linalg.LinAlgError:
-        pp_sigma = np.inf
-    principal_held = bool(pp_sigma > options.max_principal_sigma_px)
-    if principal_held:
-        keep = np.ones(len(x), bool)
-        keep[1:3] = False
 
-        def reduced(y: np.ndarray) -> np.ndarray:
-            full = x.copy()
-            full[keep] = y
-            full[1:3] = centre
-            return residuals(full)
+def _file_extra(report: dict, spec: PhantomSpec, device: dict[str, str] | None) -> dict:
+    """What the calibration file keeps of the run's report."""
+    return {**({"device": dict(device)} if device else {}), "rms_px": report["rms_px"],
+            "images": [{"image": e["image"], "balls": e["balls_used"], "rms_px": e["rms_px"],
+                        "tilt_deg": e["tilt_deg"], "outlier_balls": len(e["outlier_balls"])}
+                       for e in report["images"] if e["used"]],
+            "rejected": [{"image": e["image"], "reason": e["reason"]} for e in report["images"] if not e["used"]],
+            "phantom": spec.to_json(), "principal_point": report["principal_point"],
+            "intrinsics_sd": {n: v["sd"] for n, v in report["intrinsics"].items()},
+            "plate": {k: v for k, v in report["plate"].items() if k != "balls_mm"}}
 
-        y = least_squares(reduced, x[keep], bounds=(lower[keep], upper[keep]), x_scale="jac").x
-        x[keep], x[1:3] = y, centre
-    f, cx, cy = float(x[0]), float(x[1]), float(x[2])
-    if nominal is not None and abs(f / nominal - 1.0) > options.max_focal_deviation:
-        raise CalibrationError(f"estimated focal length {f:.0f} px is {100 * (f / nominal - 1):+.0f}% from "
-                               f"the nominal SID / pixel spacing {nominal:.0f} px: implausible")
-    projected = _project(x, views, aspect, base)
-    per_image = [{"image": im.name, "balls": len(o),
-                  "rms_px": float(np.sqrt(np.mean(np.sum((p - o) ** 2, axis=1)))), "tilt_deg": float(t)}
-                 for (im, _, o), p, t in zip(used, projected, tilts)]
-    rms = float(np.sqrt(np.mean(np.sum((np.concatenate(projected) - observed) ** 2, axis=1))))
-    if rms > options.max_rms_px:
-        raise CalibrationError(f"calibration RMS {rms:.2f} px exceeds {options.max_rms_px} px: "
-                               "the images do not fit one camera (different C-arms or settings?)")
-    camera = Camera(f, f * aspect, cx, cy, width, height, radius)
-    distortion = base.with_params(x[3:7])
-    extra = {"rms_px": rms, "images": per_image, "rejected": rejected, "phantom": spec.to_json(),
-             "principal_point": {"held_at_field_centre": principal_held, "sigma_px": pp_sigma}}
-    doc = calibration_document(camera, calibration_id, description or "C-arm calibration from phantom",
-                               distortion, spacing, extra)
-    report = {"rms_px": rms, "images": per_image, "rejected": rejected, "used": len(used),
-              "principal_held": principal_held, "principal_sigma_px": pp_sigma}
-    return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc), report
+
+def _rms(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations, k: int,
+         outliers: bool = False) -> float:
+    """A frame's RMS over its balls (and, with ``outliers``, over its outliers too)."""
+    r = bundle.ball_residuals(m, x, obs)[(obs.frame == k) & (obs.active | (outliers & (obs.ball >= 0)))]
+    return float(np.sqrt(np.mean(r**2))) if len(r) else float("inf")
+
+
+def _sigmas(result, obs: bundle.Observations, held: bool = False) -> np.ndarray:
+    """Standard deviations of the seven intrinsics (0 for a held principal point)."""
+    s = bundle.parameter_sigmas(result, 2 * int(obs.active.sum()))
+    if held:
+        return np.concatenate([s[:1], [0.0, 0.0], s[1:6]])
+    return s[:7]
+
+
+def _fill_report(run: _Run, frames: list[_Frame], m: bundle.Bundle, x: np.ndarray,
+                 obs: bundle.Observations, spec: PhantomSpec) -> None:
+    r = bundle.ball_residuals(m, x, obs)
+    for k, f in enumerate(frames):
+        mine = obs.frame == k
+        a = obs.active[mine]
+        entry = run.entries[f.image.name]
+        entry.update(used=True, reason=None, balls_used=int(a.sum()), tilt_deg=f.tilt_deg,
+                     rms_px=float(np.sqrt(np.mean(r[mine][a] ** 2))),
+                     outlier_balls=[_outlier(b, uv, e, spec) for b, uv, e in
+                                    zip(obs.ball[mine][~a], obs.uv[mine][~a], r[mine][~a])])
+
+
+def _outlier(ball: int, uv: np.ndarray, residual: float, spec: PhantomSpec) -> dict:
+    """A blob the fit left out: where it is, and which ball it was taken for (if any)."""
+    at = [round(float(u), 1) for u in uv]
+    if ball < 0:
+        return {"ball": None, "at_px": at, "residual_px": None,
+                "why": "continues the grid beyond the plate (a speck, not a ball)"}
+    return {"ball": [int(ball % spec.cols), int(ball // spec.cols)], "at_px": at,
+            "residual_px": round(float(residual), 2), "why": "far off the fit"}
+
+
+def _plate_report(m: bundle.Bundle, x: np.ndarray, obs: bundle.Observations) -> dict:
+    if m.basis is None:
+        return {"refined": False}
+    offsets = m.plate(x) - m.nominal
+    seen = np.unique(obs.ball[obs.active])
+    norms = np.linalg.norm(offsets[seen], axis=1)
+    return {"refined": True, "balls_seen": int(len(seen)),
+            "error_rms_mm": float(np.sqrt(np.mean(norms**2))), "error_max_mm": float(norms.max()),
+            "note": "ball offsets from the perfect grid, up to a shift, rotation and scale of "
+                    "the whole plate (the pitch is only a scale)",
+            "balls_mm": [[round(float(v), 4) for v in o] for o in offsets]}
