@@ -189,6 +189,12 @@ class SolverConfig:
     # global search, which measures it better (with an 8 deg limit instead, its level's p95
     # rose from 0.25 to 0.38 deg STR and from 0.13 to 0.17 deg CTR).
     max_pin_divergence_deg: float = 3.0
+    # The encoders' motion between the views (E_odo) left further off than this (whitened
+    # RMS over the views' relative poses, in sigmas: 6 components each, so a correct solve
+    # leaves about 2.4 and at most 3.4 over 20 study solves): the contours were fitted by
+    # poses the C-arm did not move through, a local minimum. A held-out solve 0.8 deg off
+    # (8 sigma) left 8.9. Refused as astray, so the global search restarts it.
+    max_odometry_rms_sigma: float = 6.0
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
@@ -690,7 +696,8 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
                         rms, start, went_astray=True)
     misfit = (gates.contour_misfit(problem, state, terms, rms)
-              or gates.pin_divergence(problem, state))
+              or gates.pin_divergence(problem, state)
+              or gates.odometry_misfit(rms, config.max_odometry_rms_sigma))
     if misfit is not None:
         return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])
