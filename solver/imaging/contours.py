@@ -468,17 +468,42 @@ def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     return points[ok]
 
 
+# An unforeseen failure inside a step is still a frame we cannot read, not a crash of the
+# caller: it is refused naming the step (the fuzz test over varied frames keeps it unused).
+_UNFORESEEN = (ValueError, IndexError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError,
+               cv2.error)
+UNFORESEEN_PREFIX = "contour extraction failed unexpectedly"
+
+
 def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig(),
                      expected_pins: np.ndarray | None = None) -> ExtractedContours:
     """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
 
     ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
-    initial pose) that decide the labels instead of ``config.pin_order``.
+    initial pose) that decide the labels instead of ``config.pin_order``. Whatever the
+    frame, the only error raised is :class:`ContourError`, with the reason.
     """
+    try:
+        return _extract(pixels, config, expected_pins)
+    except ContourError:
+        raise
+    except FieldError as exc:
+        raise ContourError(str(exc)) from None
+    except _UNFORESEEN as exc:
+        raise ContourError(f"{UNFORESEEN_PREFIX} ({type(exc).__name__}: {exc})") from exc
+
+
+def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None
+             ) -> ExtractedContours:
     start = time.perf_counter()
     image = np.asarray(pixels)
     if image.ndim != 2 or min(image.shape) < 64:
         raise ContourError(f"expected a 2-D grey-scale frame of at least 64 x 64, got {image.shape}")
+    if image.dtype.kind not in "uif" or image.dtype.kind == "c":
+        raise ContourError(f"expected grey levels as numbers, got {image.dtype}")
+    if image.dtype.kind == "f" and np.all(np.isfinite(image)) and np.ptp(image) > 0:
+        # Floating-point grey levels (any scale) onto a 16-bit range: attenuation counts in quanta.
+        image = (image - image.min()) * (65535.0 / np.ptp(image))
     h, w = image.shape
     centre, radius, outside, sign = field_of_view(image, config.polarity)
     A = attenuation(image, outside, sign)
@@ -487,6 +512,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     valid = r < (radius if radius is not None else np.inf) - 2.0
     if radius is None:
         valid &= (u >= 2) & (v >= 2) & (u < w - 2) & (v < h - 2)
+    if valid.sum() < config.min_bone_area_px:
+        raise ContourError("the field of view is too small to hold a tibia")
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
     A = np.where(valid, A, fill).astype(np.float32)
