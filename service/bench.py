@@ -25,6 +25,7 @@ from drivers.bench_link import add_link_bench
 from service.bench_degenerate import add_degenerate_bench_parser
 from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
+from service.bench_realism import add_realism_bench_parser
 from service.bench_service import add_service_bench_parser
 from service.bench_speed import add_speed_bench_parser
 from solver.plan import Plan
@@ -220,4 +221,5 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     add_speed_bench_parser(kinds)
     add_degenerate_bench_parser(kinds)
     add_imaging_bench_parser(kinds)
+    add_realism_bench_parser(kinds)
     add_hardening_bench_parser(kinds)

@@ -28,6 +28,7 @@ the meshes (``solver.silhouette.ContourGenerator``), in ideal and in distorted p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -275,23 +276,32 @@ def _solid_interior(generator: ContourGenerator, T_cam_body: Pose, camera: Camer
     return cv2.erode(footprint, kernel)
 
 
+Exposure = Callable[[np.ndarray, np.ndarray, Camera, XRayParams, Distortion, np.random.Generator],
+                    np.ndarray]
+
+
 def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | tuple[Pose, ...],
                       camera: Camera, params: XRayParams = XRayParams(),
                       rng: np.random.Generator | None = None,
-                      scene: XRayScene | None = None) -> Radiograph:
+                      scene: XRayScene | None = None,
+                      extra: Sequence[tuple[Body, Pose]] = (),
+                      exposure: Exposure = expose) -> Radiograph:
     """Render one C-arm frame of the plan's leg with its pins, and its ground-truth outlines.
 
     ``scene`` (from :meth:`XRayScene.from_plan`) saves rebuilding the meshes for every frame.
+    ``extra`` bodies (with their ``T_cam_body``) are in the beam but not measured (the
+    operating room's femur, retractors); ``exposure`` turns the line integral into the
+    stored frame (:func:`expose`, or the operating room's detector and processing).
     """
     rng = rng if rng is not None else np.random.default_rng()
     scene = scene if scene is not None else XRayScene.from_plan(plan, params)
     distortion = params.distortion or default_distortion(camera)
     T_cam_anat = T_cam_tibia @ scene.T_tibia_anat
     bodies = [(b, T_cam_tibia) for b in scene.bone] + [(b, T_cam_anat) for b in scene.anatomy]
-    bodies += [(scene.pin, T_cam_tibia @ T) for T in T_tibia_pins]
+    bodies += [(scene.pin, T_cam_tibia @ T) for T in T_tibia_pins] + list(extra)
     origin, width, height = _canvas(camera, distortion)
     line_integral = render_bodies(bodies, camera, origin, width, height)
-    image = expose(line_integral, origin, camera, params, distortion, rng)
+    image = exposure(line_integral, origin, camera, params, distortion, rng)
 
     outlines = {"bone": (scene.bone_outline, T_cam_tibia)}
     outlines.update({f"pin{i + 1}": (scene.pin_outline, T_cam_tibia @ T)
