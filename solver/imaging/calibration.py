@@ -188,7 +188,7 @@ def load_calibration(path: str | Path) -> Calibration:
 def detect_balls(image: np.ndarray, ball_diameter_px: tuple[float, float] = (8.0, 60.0),
                  polarity: str = "auto", min_contrast: float = 0.25) -> np.ndarray:
     """Centres (N, 2) of ball shadows: compact blobs of a plausible size, not cut by the rim."""
-    centre, radius, outside, sign = field_of_view(np.asarray(image), polarity)
+    centre, radius, outside, sign = field_of_view(np.asarray(image), polarity, "phantom")
     A = attenuation(image, outside, sign)
     h, w = A.shape
     v, u = np.mgrid[0:h, 0:w]
@@ -338,7 +338,7 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     used, rejected, fields = [], [], []
     for im in images:
         try:
-            centre, radius, _, _ = field_of_view(im.pixels, "auto")
+            centre, radius, _, _ = field_of_view(im.pixels, "auto", "phantom")
             balls = detect_balls(im.pixels)
             index, grid = match_grid(balls, spec.rows, spec.cols, options.min_balls)
         except (CalibrationError, FieldError) as exc:

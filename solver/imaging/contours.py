@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from ..jsonfile import read_json_object
-from .field import FieldError, attenuation, field_of_view, fill_holes
+from .field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]
@@ -505,6 +505,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         # Floating-point grey levels (any scale) onto a 16-bit range: attenuation counts in quanta.
         image = (image - image.min()) * (65535.0 / np.ptp(image))
     h, w = image.shape
+    image, overlay = remove_overlays(image)
     centre, radius, outside, sign = field_of_view(image, config.polarity)
     A = attenuation(image, outside, sign)
     u, v = np.arange(w)[None, :], np.arange(h)[:, None]
@@ -512,6 +513,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid = r < (radius if radius is not None else np.inf) - 2.0
     if radius is None:
         valid &= (u >= 2) & (v >= 2) & (u < w - 2) & (v < h - 2)
+    valid &= ~cv2.dilate(overlay.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     if valid.sum() < config.min_bone_area_px:
         raise ContourError("the field of view is too small to hold a tibia")
     # Levels of the field from every other row and column: as good, and a quarter of the sort.

@@ -7,8 +7,9 @@ circle is accepted only when a flat level around the corners ends on a circle of
 size; otherwise the whole frame is the field.
 
 Polarity (MONOCHROME2 with bone and metal dark, or an inverted image) comes from the content:
-steel pins and markers are the narrow bodies that attenuate most, so the side of the range
-on which narrow, high-contrast bars stand out is the attenuating side. Only when that is
+a knee frame is centred on the leg, so its periphery is less attenuating than its centre
+(:func:`_periphery_asymmetry`); where that is not clear, steel pins, the narrow bodies that
+attenuate most, stand out on the attenuating side (:func:`polarity_sign`). Only when both are
 ambiguous does the intensifier's no-signal level decide (the side it lies on is "no signal").
 
 ``-log(signal)`` turns the frame into attenuation, in which bodies add.
@@ -19,7 +20,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["FieldError", "field_of_view", "attenuation", "fill_holes", "polarity_sign"]
+__all__ = ["FieldError", "field_of_view", "attenuation", "fill_holes", "polarity_sign", "remove_overlays"]
 
 
 class FieldError(ValueError):
@@ -60,11 +61,11 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
 
 
 # A circle is the intensifier's field only if this share of the flat region's boundary lies
-# on it, its radius is this share of the frame's shorter side to its diagonal, and its
+# on it (steel crossing the rim takes a share of the boundary), its radius is this share of the frame's shorter side to its diagonal, and its
 # boundary points span this arc about its centre (a straight skin line fits a huge circle).
-_CIRCLE_INLIERS = 0.6
+_CIRCLE_INLIERS = 0.35
 _CIRCLE_RADIUS = (0.25, 0.8)
-_CIRCLE_ARC_DEG = 120.0
+_CIRCLE_ARC_DEG = 180.0
 
 
 def _circular_field(image: np.ndarray, span: float) -> tuple[np.ndarray, float, float] | None:
@@ -106,6 +107,10 @@ def _circular_field(image: np.ndarray, span: float) -> tuple[np.ndarray, float, 
     return centre, radius, outside
 
 
+_BAR_CONTRASTS = (0.1, 0.2, 0.3, 0.5)  # of the central field's 1-99 percentile range
+_CENTRAL_SHARE = 0.7  # of the field's half-size: where steel bars are looked for
+
+
 def polarity_sign(image: np.ndarray, lit: np.ndarray) -> int | None:
     """+1 if attenuating bodies are dark, -1 if bright, None if the content does not say.
 
@@ -117,9 +122,18 @@ def polarity_sign(image: np.ndarray, lit: np.ndarray) -> int | None:
     or the frame's edge passes for a bar."""
     small = cv2.resize(image.astype(np.float32), None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
     inside = cv2.resize(lit.astype(np.uint8), small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
-    if inside.sum() < 400:
+    # The pins are near the centre of a knee frame; the periphery holds what misleads: air
+    # strips beside the skin, collimator blades, annotations.
+    vs, us = np.nonzero(inside)
+    if len(us) == 0:
         return None
-    lo, hi = np.percentile(small[inside], [1, 99])
+    centre = np.array([us.mean(), vs.mean()])
+    reach = _CENTRAL_SHARE * 0.5 * min(np.ptp(us) + 1, np.ptp(vs) + 1)
+    gv, gu = np.mgrid[0:small.shape[0], 0:small.shape[1]]
+    central = inside & (np.hypot(gu - centre[0], gv - centre[1]) < reach)
+    if central.sum() < 400:
+        return None
+    lo, hi = np.percentile(small[central], [1, 99])
     if hi - lo <= 0:
         return None
     norm = np.clip((small - lo) / (hi - lo), -0.5, 1.5)
@@ -130,15 +144,55 @@ def polarity_sign(image: np.ndarray, lit: np.ndarray) -> int | None:
         padded = cv2.copyMakeBorder(np.where(inside, norm, fill).astype(np.float32), pad, pad, pad, pad,
                                     cv2.BORDER_CONSTANT, value=fill)
         hat = cv2.morphologyEx(padded, op, kernel)[pad:-pad, pad:-pad]
-        shares.append(float(np.mean(hat[inside] > 0.3)))
+        # Over several contrasts: steel stands out at all of them, in linear and log frames.
+        shares.append(float(sum(np.mean(hat[central] > t) for t in _BAR_CONTRASTS)))
     dark_share, bright_share = shares
-    if max(shares) < 1e-3 or max(shares) < 1.5 * min(shares):
+    if max(shares) < 5e-4 or max(shares) < 1.5 * min(shares):
         return None
     return 1 if dark_share > bright_share else -1
 
 
-def field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float | None, float, int]:
-    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal."""
+# The periphery's asymmetry (below), in parts of the field's 1-99 percentile range, that
+# decides the polarity on its own, and that decides it when the steel does not.
+_RIM_DECISIVE = 0.15
+_RIM_WEAK = 0.03
+
+
+def _periphery_asymmetry(image: np.ndarray, lit: np.ndarray, centre: np.ndarray,
+                         radius: float | None) -> float:
+    """Positive when the field's periphery is brighter than its centre, negative if darker.
+
+    A knee frame is centred on the leg, thickest (and holding the bone) in the middle:
+    the periphery shows air or thinner tissue, less attenuating than the centre, on at
+    least some sides, and collimator blades, more attenuating, on at most a few. So the
+    periphery's less attenuating quarter departs further from the centre's level than
+    its most attenuating quarter: its upper quartile in a frame with bone dark, its lower
+    one in an inverted frame."""
+    h, w = image.shape
+    u, v = np.arange(0, w, 2)[None, :], np.arange(0, h, 2)[:, None]
+    if radius is not None:
+        rel = np.hypot(u - centre[0], v - centre[1]) / radius
+    else:
+        rel = np.maximum(np.abs(u - centre[0]) / (w / 2.0), np.abs(v - centre[1]) / (h / 2.0))
+    sub, inside = image[::2, ::2], lit[::2, ::2]
+    core, ring = sub[inside & (rel < 0.3)], sub[inside & (rel > 0.8)]
+    if len(core) < 50 or len(ring) < 50:
+        return 0.0
+    lo, hi = np.percentile(sub[inside], [1, 99])
+    if hi <= lo:
+        return 0.0
+    level = float(np.median(core))
+    q25, q75 = np.percentile(ring, [25, 75])
+    return float(((q75 - level) - (level - q25)) / (hi - lo))
+
+
+def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
+                  ) -> tuple[np.ndarray, float | None, float, int]:
+    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal.
+
+    ``scene`` "knee" reads an automatic polarity from the content of a knee frame first;
+    "phantom" (a calibration plate filling the field, no leg) from the intensifier's
+    no-signal level first."""
     data = np.asarray(image)
     if data.ndim != 2 or min(data.shape) < 16:
         raise FieldError(f"expected a 2-D grey-scale frame, got shape {data.shape}")
@@ -161,7 +215,14 @@ def field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float |
     if polarity in ("dark", "bright"):
         sign = 1 if polarity == "dark" else -1
     else:
-        sign = polarity_sign(data, lit)
+        sign = None
+        if scene == "phantom" and outside is not None:
+            sign = 1 if float(np.median(data[lit])) >= outside else -1
+        rim = _periphery_asymmetry(data, lit, centre, radius) if sign is None else 0.0
+        if sign is None:
+            sign = int(np.sign(rim)) if abs(rim) >= _RIM_DECISIVE else polarity_sign(data, lit)
+        if sign is None and abs(rim) >= _RIM_WEAK:
+            sign = int(np.sign(rim))
         if sign is None and outside is not None:
             sign = 1 if float(np.median(data[lit])) >= outside else -1
         if sign is None:
@@ -175,6 +236,41 @@ def field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float |
         # No usable no-signal level: just beyond the most attenuating pixel of the field.
         level = level_lo - 1.0 if sign > 0 else level_hi + 1.0
     return np.asarray(centre, float), radius, float(level), sign
+
+
+_STROKE_MIN_PX = 12
+_STROKE_CONTRAST = 0.15  # of the frame's range: a stroke's mean step off its surroundings
+
+
+def remove_overlays(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frame with burned-in annotations filled in from around them, and their mask.
+
+    Text and graphics are written at the extreme grey level of the stored range in strokes
+    a few pixels wide; saturated air or the dark outside of a circular field are at that
+    level too, but in broad areas that an opening keeps. Strokes are filled in (Telea
+    inpainting) so that they take no part in the field, the polarity or the edges."""
+    data = np.asarray(image).astype(np.float32)
+    mask = np.zeros(data.shape, bool)
+    kernel = np.ones((7, 7), np.uint8)
+    span = float(data.max() - data.min())
+    for level in (data.max(), data.min()):
+        at = (data == level).astype(np.uint8)
+        thin = (at > 0) & (cv2.morphologyEx(at, cv2.MORPH_OPEN, kernel) == 0)
+        # A stroke is a few dozen pixels at least (single pixels at the extreme are noise),
+        # and stands sharply off what is around it; steel saturating the detector is at the
+        # extreme too, but its surroundings (the rest of its shadow) are nearly as extreme.
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
+        around = cv2.dilate(labels.astype(np.float32), np.ones((5, 5), np.uint8)).astype(np.int32)
+        ring = (around > 0) & (labels == 0)
+        contrast = np.bincount(around[ring], weights=np.abs(data[ring] - level), minlength=count)
+        contrast /= np.maximum(np.bincount(around[ring], minlength=count), 1) * max(span, 1e-9)
+        stroke = (stats[:, cv2.CC_STAT_AREA] >= _STROKE_MIN_PX) & (contrast > _STROKE_CONTRAST)
+        stroke[0] = False
+        mask |= stroke[labels]
+    if not mask.any():
+        return data, mask
+    mask = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return cv2.inpaint(data, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA), mask
 
 
 def attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
