@@ -470,8 +470,8 @@ def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
 
 # An unforeseen failure inside a step is still a frame we cannot read, not a crash of the
 # caller: it is refused naming the step (the fuzz test over varied frames keeps it unused).
-_UNFORESEEN = (ValueError, IndexError, ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError,
-               cv2.error)
+_UNFORESEEN = (ValueError, TypeError, IndexError, ZeroDivisionError, FloatingPointError,
+               np.linalg.LinAlgError, cv2.error)
 UNFORESEEN_PREFIX = "contour extraction failed unexpectedly"
 
 

@@ -262,7 +262,7 @@ def remove_overlays(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         count, labels, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
         around = cv2.dilate(labels.astype(np.float32), np.ones((5, 5), np.uint8)).astype(np.int32)
         ring = (around > 0) & (labels == 0)
-        contrast = np.bincount(around[ring], weights=np.abs(data[ring] - level), minlength=count)
+        contrast = np.bincount(around[ring], weights=np.abs(data[ring] - level), minlength=count).astype(float)
         contrast /= np.maximum(np.bincount(around[ring], minlength=count), 1) * max(span, 1e-9)
         stroke = (stats[:, cv2.CC_STAT_AREA] >= _STROKE_MIN_PX) & (contrast > _STROKE_CONTRAST)
         stroke[0] = False
