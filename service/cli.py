@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", choices=("idealised", "operating-room"), default="idealised",
                    help="idealised frames, or every operating-room nuisance at once")
     for name in NUISANCES:
-        p.add_argument(f"--{name.replace('_', '-')}", dest=name, action="store_true",
+        flag = "surgeon-views" if name == "views" else name.replace("_", "-")  # --views is taken
+        p.add_argument(f"--{flag}", dest=name, action="store_true",
                        help=f"add the {name.replace('_', ' ')} nuisance (solver/imaging/operating_room.py)")
     p.add_argument("--nuisance-meshes", type=Path, default=_shared_meshes(),
                    help="folder with femur-generic-right.stl and patella-right.stl (metres)")
