@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 import traceback
 from collections import Counter
@@ -180,8 +181,7 @@ def realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
 
 def _generic(reason: str) -> str:
     """A refusal's reason without its figures, to count alike reasons together."""
-    words = [w for w in reason.split() if not any(ch.isdigit() for ch in w)]
-    return " ".join(words)[:110]
+    return re.sub(r"[-+]?\d+(\.\d+)?", "#", reason)[:120]
 
 
 def _summarise(rows: list[dict], levels: tuple[int, ...]) -> list[dict]:

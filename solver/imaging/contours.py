@@ -7,7 +7,8 @@ Pipeline (all tuning in :class:`ContourConfig`):
    the polarity (attenuating objects dark or bright) follows from which side is brighter.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
-3. Pins: ``A`` minus a 100-px median background above ``pin_threshold`` (hysteresis). Seen
+3. Pins: ``A`` minus a 100-px median background, seeded above ``pin_threshold`` and grown
+   to half each shadow's peak; only bars of a pin's width and shape are kept. Seen
    nearly along the resection plane the two parallel pins often overlap, staggered along
    their common axis; steel saturates, so one shadow is split into two bars where its long
    sides step from one pin's edge to the other's (``pin_min_step_px``).
@@ -72,7 +73,13 @@ class ContourConfig:
     min_edge_strength: float = 0.015  # attenuation drop per pixel at an accepted edge
     bone_edge_offset_px: float = 0.0  # outward shift of bone edges (blur bias of a site)
     bone_reach_in_px: float = 2.0  # further inward search: a gentle edge leaves the mask outside it
-    pin_threshold: float = 0.8  # attenuation of steel over its 100-px median background
+    # Attenuation over its 100-px median background that seeds a steel shadow (grown to
+    # half its peak); scatter brings steel down to ~0.6, bone's tangent cortex reaches ~0.9.
+    pin_threshold: float = 0.5
+    # Attenuation over the field's median above which a region wider than two pins is
+    # opaque (collimator and retractor blades, a femur end-on); tibia with fibula stay below.
+    opaque_excess: float = 1.5
+    pin_width_px: tuple[float, float] = (12.0, 45.0)  # widths of pin shadows (3-4.5 mm, x1.6, 0.22 mm px)
     pin_min_area_px: int = 80
     pin_edge_offset_px: float = 0.0
     pin_min_step_px: float = 1.0  # least offset between overlapping pins' edges told apart
@@ -326,6 +333,33 @@ def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | 
 
 
 _MIN_PIN_EDGES = 20  # fewer edge points than this are no pin shadow
+# A pin's shadow (or two overlapping along their axis) is a straight bar: this much longer
+# than wide, filling this share of its rectangle. Retractor blades, collimator blades,
+# lead letters and a femur's end-on shaft are wider, shorter or not straight.
+_PIN_ELONGATION = 3.0
+_PIN_FILL = 0.7
+_PIN_UNION_WIDTH = 1.8  # two pins side by side: at most this many widths wide
+_PIN_GROW_TO = 0.8  # excess to which an unscattered steel shadow is grown
+_PIN_PEAK_SHARE = 0.5  # of the strongest bar's peak excess, that another bar must reach
+
+
+def _pin_like(labels: np.ndarray, count: int, config: ContourConfig) -> np.ndarray:
+    """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
+    ys, xs = np.nonzero(labels)
+    order = np.argsort(labels[ys, xs], kind="stable")
+    ys, xs = ys[order], xs[order]
+    bounds = np.searchsorted(labels[ys, xs], np.arange(count + 1))
+    ok = np.zeros(count, bool)
+    lo, hi = config.pin_width_px
+    for label in range(1, count):
+        a, b = bounds[label], bounds[label + 1]
+        if b - a < config.pin_min_area_px:
+            continue
+        bar = _fit_bar(np.column_stack([xs[a:b], ys[a:b]]).astype(float))
+        width, length = 2.0 * bar.half_width, 2.0 * bar.half_length
+        ok[label] = (lo <= width <= _PIN_UNION_WIDTH * hi and length >= _PIN_ELONGATION * width
+                     and (b - a) >= _PIN_FILL * width * length)
+    return ok
 
 
 def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
@@ -336,14 +370,26 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
     background = cv2.medianBlur(quantised, 25).astype(np.float32) / 255 * (hi - lo) + lo
     background = cv2.resize(background, A.shape[::-1], interpolation=cv2.INTER_LINEAR)
-    excess = np.where(valid, A - background, 0.0)
-    weak = excess > config.pin_threshold
-    strong = excess > 2.0 * config.pin_threshold
+    excess = np.where(valid, A - background, 0.0).astype(np.float32)
+    # Scatter adds to what passes steel and bone alike, so steel's excess over its
+    # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
+    # its seeds down to half of its own peak excess where that is below _PIN_GROW_TO.
+    strong = excess > config.pin_threshold
+    count, seeds = cv2.connectedComponents(strong.astype(np.uint8), connectivity=8)
+    peak = np.zeros(count, np.float32)
+    np.maximum.at(peak, seeds[strong], excess[strong])
+    reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))
+    weak = (excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)
     count, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
     sizes = np.bincount(labels.ravel(), minlength=count)
-    seeded = np.bincount(labels[strong], minlength=count) > 0
-    good = seeded & (sizes >= config.pin_min_area_px)
+    good = sizes >= config.pin_min_area_px
     good[0] = False
+    good &= _pin_like(labels, count, config)
+    # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
+    tops = np.zeros(count, np.float32)
+    np.maximum.at(tops, labels[weak], excess[weak])
+    if good.any():
+        good &= tops >= _PIN_PEAK_SHARE * tops[good].max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = _outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
@@ -459,6 +505,20 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
 
 
+def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """Regions far more attenuating than the field and wider than any pin: collimator
+    blades, retractor blades, a femur seen end-on. No edge in or beside them is the tibia's
+    (what they hide is left out, not guessed), and no steel in them is a pin."""
+    sub = A[::2, ::2][valid[::2, ::2]]
+    if sub.size == 0:
+        return np.zeros_like(valid)
+    opaque = (valid & (A > float(np.median(sub)) + config.opaque_excess)).astype(np.uint8)
+    size = int(2 * config.pin_width_px[1] + 1) | 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    broad = cv2.morphologyEx(opaque, cv2.MORPH_OPEN, kernel)
+    return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
+
+
 def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     h, w = allowed.shape
     pix = np.round(points).astype(int)
@@ -516,6 +576,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= ~cv2.dilate(overlay.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     if valid.sum() < config.min_bone_area_px:
         raise ContourError("the field of view is too small to hold a tibia")
+    broad = _broad_opaque(A, valid, config)
+    valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
     A = np.where(valid, A, fill).astype(np.float32)
@@ -532,11 +594,13 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     rim_ok = r < (radius if radius is not None else np.inf) - margin
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+    rim_ok &= _distance_to(broad) > margin
     bone = _keep(bone, rim_ok & (_distance_to(pins) > config.pin_exclusion_px) & (to_air > 3.0))
     pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
+        "opaque_area_px": int(broad.sum()),
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }
