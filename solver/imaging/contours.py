@@ -320,6 +320,18 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
 
 
+_HEAD_MARGIN_PX = 3.0
+
+
+def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
+    """A pin's edge points without those of a head wider than its shaft (the plan's pin
+    model has none): points further from the axis than the shaft's edges by a margin."""
+    if len(edges) < _MIN_PIN_EDGES:
+        return edges
+    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    return edges[across <= np.median(across) + _HEAD_MARGIN_PX]
+
+
 def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | None) -> list[_Bar]:
     if expected is not None:
         expected = np.asarray(expected, float).reshape(2, 2)
@@ -356,7 +368,10 @@ def _pin_like(labels: np.ndarray, count: int, config: ContourConfig) -> np.ndarr
         if b - a < config.pin_min_area_px:
             continue
         bar = _fit_bar(np.column_stack([xs[a:b], ys[a:b]]).astype(float))
-        width, length = 2.0 * bar.half_width, 2.0 * bar.half_length
+        # Across a filled bar offsets are uniform: four times their median is its width,
+        # whatever a head on its end adds.
+        across = (np.column_stack([xs[a:b], ys[a:b]]) - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
+        width, length = 4.0 * float(np.median(np.abs(across))), 2.0 * bar.half_length
         ok[label] = (lo <= width <= _PIN_UNION_WIDTH * hi and length >= _PIN_ELONGATION * width
                      and (b - a) >= _PIN_FILL * width * length)
     return ok
@@ -415,7 +430,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
     # Where the two pins' edges are closer than a step can be seen, a point is on both.
     shared = 0.5 * config.pin_min_step_px
-    result = [edges[distance[i] <= distance[1 - i] + shared] for i in range(2)]
+    result = [_without_head(edges[distance[i] <= distance[1 - i] + shared], bars[i]) for i in range(2)]
     info = {"pins_found": 2 if all(len(r) for r in result) else sum(bool(len(r)) for r in result),
             "pins_overlap": overlap,
             "pin_centres_px": [b.centre.tolist() for b in bars],
@@ -505,6 +520,24 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
 
 
+def _smoothing_for_noise(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> float:
+    """The Gaussian sigma (px) that keeps the noise of the attenuation's gradient well under
+    the soft tissue's barrier: ``config.smoothing_px`` at full dose, more at low dose (a
+    tenth of the quanta, ~3x the noise per pixel). The noise is read from differences of
+    neighbouring pixels (robust: edges are few)."""
+    diff = (A[1:, :] - A[:-1, :])[::2, ::2][(valid[1:, :] & valid[:-1, :])[::2, ::2]]
+    if diff.size < 100:
+        return config.smoothing_px
+    noise = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
+    # The derivative of a Gaussian of sigma s passes white noise of SD n as ~n / (2.5 s^2).
+    needed = np.sqrt(noise / (2.5 * _GRADIENT_NOISE_SHARE * config.barrier_strength))
+    return float(np.clip(needed, config.smoothing_px, _MAX_SMOOTHING_PX))
+
+
+_GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD at most
+_MAX_SMOOTHING_PX = 4.0
+
+
 def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
     """Regions far more attenuating than the field and wider than any pin: collimator
     blades, retractor blades, a femur seen end-on. No edge in or beside them is the tibia's
@@ -581,7 +614,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
     A = np.where(valid, A, fill).astype(np.float32)
-    smooth = cv2.GaussianBlur(A, (0, 0), config.smoothing_px)
+    smoothing = _smoothing_for_noise(A, valid, config)
+    smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
     grad = (cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
             cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
     coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
@@ -600,7 +634,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
-        "opaque_area_px": int(broad.sum()),
+        "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }
