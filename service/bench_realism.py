@@ -158,7 +158,8 @@ def realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
                 d = frame.radiograph.distortion
                 views.append(ViewObservation(f"view{k + 1}", frame.radiograph.camera,
                                              {lb: d.undistort(p) if len(p) else p
-                                              for lb, p in found.as_dict().items()}))
+                                              for lb, p in found.as_dict().items()},
+                                             found.diagnostics["missing"]))
         if refusal is not None:
             row["levels"][level] = {"status": "refused", "reason": refusal}
             continue

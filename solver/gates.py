@@ -45,8 +45,10 @@ def input_refusal(problem: JointProblem, initial: InitialGuess) -> str | None:
         seen = sum(len(problem.pixels[k, label]) >= c.min_pin_points
                    for k in range(problem.n_views))
         if seen < 2:
+            why = "".join(f"; view {v.view_id}: {label} {v.notes[label]}"
+                          for v in problem.views if label in v.notes)
             return (f"{label} is not seen in two views (needs >= {c.min_pin_points} contour "
-                    f"points in each; seen in {seen})")
+                    f"points in each; seen in {seen}){why}")
     separation = view_separation_deg(list(initial.T_cam_tibia))
     if separation < c.min_view_separation_deg:
         return (f"views are too close in angle ({separation:.1f} deg apart; at least "

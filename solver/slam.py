@@ -361,7 +361,8 @@ class JointProblem:
             near = cKDTree(uv).query(pixels)[0] <= c.foreign_edge_px
             if near.all():
                 continue
-            views[k] = ViewObservation(view.view_id, view.camera, {**view.contours, "bone": pixels[near]})
+            views[k] = ViewObservation(view.view_id, view.camera, {**view.contours, "bone": pixels[near]},
+                                       view.notes)
         if all(a is b for a, b in zip(views, self.views)):
             return self
         return JointProblem(self.plan, views, c)

@@ -538,6 +538,21 @@ _GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD
 _MAX_SMOOTHING_PX = 4.0
 
 
+_HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
+
+
+def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray) -> str:
+    """Why pin ``index`` (0, 1) has no edges in a frame, in words for the refusal."""
+    if broad.any():
+        if expected is None:
+            return "not found (hidden by metal?)"
+        centre = np.asarray(expected, float).reshape(2, 2)[index]
+        ys, xs = np.nonzero(broad[::4, ::4])
+        if len(xs) and float(np.min(np.hypot(4 * xs - centre[0], 4 * ys - centre[1]))) <= _HIDDEN_NEAR_PX:
+            return "hidden by metal"
+    return "not found (no steel bar of a pin's shape)"
+
+
 def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
     """Regions far more attenuating than the field and wider than any pin: collimator
     blades, retractor blades, a femur seen end-on. No edge in or beside them is the tibia's
@@ -631,10 +646,13 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     rim_ok &= _distance_to(broad) > margin
     bone = _keep(bone, rim_ok & (_distance_to(pins) > config.pin_exclusion_px) & (to_air > 3.0))
     pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
+    missing = {label: _why_missing(k, expected_pins, broad)
+               for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
+               if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
-        "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing,
+        "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }
