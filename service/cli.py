@@ -28,6 +28,7 @@ from solver.slam import METHODS, SolverConfig, solve_joint
 
 from .bench import add_bench_parser
 from .calibrate import add_calibrate_parser
+from .measure import add_measure_parser
 from .sim_images import write_case_images
 from .plans import add_plan_parser
 from .replay import add_replay_parser
@@ -200,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_parser(sub)
     add_calibrate_parser(sub)
+    add_measure_parser(sub)
     add_carm_sim_parser(sub)
     add_plan_parser(sub)
     add_status_parser(sub)
