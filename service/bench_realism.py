@@ -39,7 +39,7 @@ from solver.imaging.operating_room import (
     room_scene,
     view_angles,
 )
-from solver.imaging.xray import XRayParams, XRayScene, default_distortion
+from solver.imaging.xray import XRayParams, XRayScene
 from solver.observations import ViewObservation
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
