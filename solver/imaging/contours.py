@@ -321,6 +321,34 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
 
 
 _HEAD_MARGIN_PX = 3.0
+# The two pins of a block are parallel and alike: two shadows are taken as the pair only
+# when this close in direction and width; of several such pairs, the closest.
+_PIN_CANDIDATES = 6
+_PAIR_MAX_ANGLE_DEG = 8.0
+_PAIR_MAX_WIDTH_RATIO = 1.4
+
+
+def _robust_width(bar: _Bar, points: np.ndarray) -> float:
+    across = (points - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
+    return 4.0 * float(np.median(np.abs(across)))
+
+
+def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | None:
+    """The two shadows most alike in direction and width (the block's parallel pins), or
+    None when no two are alike enough to be the pins."""
+    best, best_cost = None, np.inf
+    widths = [_robust_width(bar, points) for bar, points in fitted]
+    for i in range(len(fitted)):
+        for j in range(i + 1, len(fitted)):
+            cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
+            angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
+            ratio = max(widths[i], widths[j]) / max(min(widths[i], widths[j]), 1e-9)
+            if angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO:
+                continue
+            cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if cost < best_cost:
+                best, best_cost = (i, j), cost
+    return best
 
 
 def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
@@ -421,10 +449,21 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
         return [empty, empty], mask, {"pins_found": 0}
     ys, xs = np.nonzero(mask)
     kept = np.bincount(labels[ys, xs], minlength=count)  # pixels of each shadow after the opening
-    if np.count_nonzero(kept) >= 2:
-        pixels = np.column_stack([xs, ys]).astype(float)
-        bars, overlap = [_fit_bar(pixels[labels[ys, xs] == t]) for t in np.argsort(kept)[::-1][:2]], "apart"
+    pixels = np.column_stack([xs, ys]).astype(float)
+    shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
+    fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
+    pair = _parallel_pair(fitted)
+    if pair is not None:
+        bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
+        # One shadow holds both pins (or the others are no pin's twin): split the largest.
+        own = cv2.dilate((labels == shadows[0]).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        at = np.clip(np.round(edges).astype(int), 0, [A.shape[1] - 1, A.shape[0] - 1])
+        mine = own[at[:, 1], at[:, 0]]
+        edges, normals = edges[mine], normals[mine]
+        if len(edges) < _MIN_PIN_EDGES:
+            empty = np.zeros((0, 2))
+            return [empty, empty], mask, {"pins_found": 0}
         bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
