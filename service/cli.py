@@ -63,6 +63,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if getattr(args, "patient_id", None):
         plan.patient_id = args.patient_id
     room = _operating_room(args)
+    if room.names and room.names != ["views"] and not getattr(args, "images", False):
+        raise ValueError("operating-room nuisances other than the views are in the frames: add --images")
     views = view_angles(room.draw(args.seed), args.views)
     config = SimulationConfig(view_angles_deg=views, noise_px=args.noise_px, seed=args.seed,
                               init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd)
@@ -81,8 +83,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if getattr(args, "images", False):
         write_case_images(args.out, plan, case, "simulated-carm", args.seed, room=room,
                           patient_name=getattr(args, "patient_name", None))
-    elif room.names and room.names != ["views"]:
-        raise ValueError("operating-room nuisances other than the views are in the frames: add --images")
     print(f"wrote simulated case to {args.out} (true CTR {case.truth_ctr_deg:+.2f} deg, "
           f"STR {case.truth_str_deg:+.2f} deg)")
     return 0
