@@ -62,9 +62,11 @@ def _plan(model: str, data: Path) -> Plan:
         if model == "phantom":
             plan = Plan.phantom("right")
         else:
+            # The shared fibula is not a closed surface, which X-ray path lengths need: the
+            # real model is its tibia alone (the plan as the frames: no fibula in either).
             smith = data / "knee-smith2019"
             landmarks = Path(__file__).resolve().parents[1] / "tests" / "data" / "knee-smith2019-landmarks.json"
-            plan = Plan.from_meshes(smith / "tibia-right.stl", smith / "fibula-right.stl", landmarks)
+            plan = Plan.from_meshes(smith / "tibia-right.stl", None, landmarks)
         plan.bone_model()
         plan.pin_model()
         _plans[model] = plan
@@ -107,7 +109,19 @@ def _scores(frame: RoomFrame, found: ExtractedContours) -> dict:
 
 
 def realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
-    """One case of one scene and model: its frames' scores and its solve at every level."""
+    """One case of one scene and model: its frames' scores and its solve at every level; a
+    defect is recorded with its place (one case cannot sink the study)."""
+    try:
+        return _realism_case(job)
+    except Exception as exc:
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        model, scene, seed, levels, _ = job
+        reason = f"{type(exc).__name__}: {exc} ({where.filename}:{where.lineno})"
+        return {"model": model, "scene": scene, "seed": seed, "frames": [],
+                "levels": {level: {"status": "error", "reason": reason} for level in levels}}
+
+
+def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
     model, scene, seed, levels, data = job
     data_path = Path(data)
     row: dict = {"model": model, "scene": scene, "seed": seed, "frames": [], "levels": {}}
