@@ -721,9 +721,11 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     state, terms, fine = schedule.run(problem.config.method, State(poses, np.zeros((0, 3))))
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
                          fine.term_costs, schedule.seconds, fine.history)
-    problem = schedule.problem  # with the foreign edges dropped
-    outcome = _judged(problem, state, terms, fine, report, start)
-    outcome.edge_point_counts = problem.named(problem.edge_point_counts(terms))
+    attributed = schedule.problem  # with the foreign edges dropped
+    outcome = _judged(attributed, state, terms, fine, report, start)
+    # The contour points offered (as extracted), and those that kept an edge point.
+    outcome.point_counts = problem.point_counts()
+    outcome.edge_point_counts = attributed.named(attributed.edge_point_counts(terms))
     return outcome
 
 
