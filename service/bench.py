@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.bench_link import add_link_bench
+from service.bench_args import names_from
 from service.bench_degenerate import add_degenerate_bench_parser
 from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
@@ -191,11 +192,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
 
 
 def _methods(text: str) -> list[str]:
-    names = list(METHODS) if text == "all" else [m.strip() for m in text.split(",") if m.strip()]
-    unknown = [m for m in names if m not in METHODS]
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
-    return names
+    return names_from(text, METHODS, "method")
 
 
 def add_bench_parser(sub: argparse._SubParsersAction) -> None:

@@ -45,6 +45,7 @@ from solver.plan import Plan
 from solver.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
 from solver.slam import SolverConfig, solve_joint
 
+from .bench_args import names_from
 from .bench_imaging import COVERED_PX, contour_scores
 
 __all__ = ["add_realism_bench_parser", "run_realism", "realism_case", "SHARED_DATA"]
@@ -311,12 +312,7 @@ def run_realism(args: argparse.Namespace) -> int:
 
 
 def _scenes(text: str) -> list[str]:
-    known = ("idealised", "operating-room") + NUISANCES
-    names = list(known) if text == "all" else [s.strip() for s in text.split(",") if s.strip()]
-    unknown = [s for s in names if s not in known]
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(f"unknown scene(s) {unknown}; choose from {', '.join(known)}")
-    return names
+    return names_from(text, ("idealised", "operating-room") + NUISANCES, "scene")
 
 
 def add_realism_bench_parser(kinds: argparse._SubParsersAction) -> None:
