@@ -22,14 +22,22 @@ from pathlib import Path
 import numpy as np
 
 from drivers.bench_link import add_link_bench
+from service.bench_args import names_from
 from service.bench_degenerate import add_degenerate_bench_parser
 from service.bench_hardening import add_hardening_bench_parser
 from service.bench_imaging import add_imaging_bench_parser
+from service.bench_realism import add_realism_bench_parser
 from service.bench_service import add_service_bench_parser
 from service.bench_speed import add_speed_bench_parser
 from service.bench_workflow import add_workflow_bench_parser
 from solver.plan import Plan
-from solver.simulate import ROT_SD_PER_LEVEL_RAD, TRANS_SD_PER_LEVEL_MM, SimulationConfig, simulate_case
+from solver.simulate import (
+    ROT_SD_PER_LEVEL_RAD,
+    TRANS_SD_PER_LEVEL_MM,
+    SimulationConfig,
+    SimulationError,
+    simulate_case,
+)
 from solver.slam import METHODS, SolverConfig, solve_joint
 
 SUCCESS_DEG = 1.0
@@ -51,11 +59,16 @@ def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None
 def _run_one(job: tuple[str, int, int, float, float]) -> dict:
     method, level, seed, noise_px, segmentation_mm = job
     plan = _worker_plan
-    case = simulate_case(plan, replace(SimulationConfig.at_level(level, seed, noise_px),
-                                       segmentation_sd_mm=segmentation_mm))
     start = time.perf_counter()
     row = {"method": method, "level": level, "seed": seed,
-           "ctr_abs_deg": None, "str_abs_deg": None, "ctr_sigma_deg": None, "str_sigma_deg": None}
+           "ctr_abs_deg": None, "str_abs_deg": None, "ctr_sigma_deg": None, "str_sigma_deg": None,
+           "odometry_rms_sigma": None, "initialisation": None}
+    try:
+        case = simulate_case(plan, replace(SimulationConfig.at_level(level, seed, noise_px),
+                                           segmentation_sd_mm=segmentation_mm))
+    except SimulationError as exc:  # the simulator's case, not the solver's: skip it, go on
+        row.update(time_s=0.0, iterations=0, status="skipped", reason=f"seed {seed}: {exc}")
+        return row
     try:
         outcome = solve_joint(plan, case.views, case.initial, SolverConfig(method=method))
     except Exception as exc:  # a defect: recorded with its place, so one run cannot sink a study
@@ -64,7 +77,9 @@ def _run_one(job: tuple[str, int, int, float, float]) -> dict:
                    reason=f"{type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
         return row
     row.update(time_s=time.perf_counter() - start, iterations=outcome.iterations,
-               status=outcome.status, reason=outcome.reason)
+               status=outcome.status, reason=outcome.reason,
+               odometry_rms_sigma=outcome.residual_rms.get("E_odo"),
+               initialisation=outcome.initialisation)
     if outcome.status == "measured":
         sigma = np.degrees(np.sqrt(np.diag(outcome.angle_cov)))
         row.update(ctr_abs_deg=abs(float(np.degrees(outcome.plane.ctr)) - case.truth_ctr_deg),
@@ -129,14 +144,19 @@ def _plot(results: list[dict], path: Path) -> None:
 
 
 def _summary(method: str, level: int, rows: list[dict]) -> dict:
-    """One method at one level: per-run figures in the order of the seeds."""
+    """One method at one level: per-run figures in the order of the seeds; cases the
+    simulator could not build are listed apart (``skipped``, with their seeds)."""
+    skipped = [r["reason"] for r in rows if r["status"] == "skipped"]
+    rows = [r for r in rows if r["status"] != "skipped"]
     return {
         "method": method, "level": level,
         "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
         "runs": len(rows), "converged": sum(r["status"] == "measured" for r in rows),
         **{key: [r[key] for r in rows] for key in
-           ("ctr_abs_deg", "str_abs_deg", "ctr_sigma_deg", "str_sigma_deg", "time_s", "iterations")},
+           ("ctr_abs_deg", "str_abs_deg", "ctr_sigma_deg", "str_sigma_deg", "time_s", "iterations",
+            "odometry_rms_sigma", "initialisation")},
         "refusals": [r["reason"] for r in rows if r["status"] != "measured"],
+        "skipped": skipped,
     }
 
 
@@ -163,6 +183,9 @@ def run_accuracy(args: argparse.Namespace) -> int:
     (args.out / "results.md").write_text(f"# Accuracy study\n\n{json.dumps(protocol)}\n\n{table}\n")
     _plot(results, args.out / "errors.png")
     print(table)
+    for r in rows:
+        if r["status"] == "skipped":
+            print(f"skipped {r['method']} level {r['level']}: {r['reason']}")
     errors = [r for r in rows if r["status"] == "error"]
     for r in errors:
         print(f"ERROR {r['method']} level {r['level']} seed {r['seed']}: {r['reason']}")
@@ -170,11 +193,7 @@ def run_accuracy(args: argparse.Namespace) -> int:
 
 
 def _methods(text: str) -> list[str]:
-    names = list(METHODS) if text == "all" else [m.strip() for m in text.split(",") if m.strip()]
-    unknown = [m for m in names if m not in METHODS]
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
-    return names
+    return names_from(text, METHODS, "method")
 
 
 def add_bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -201,4 +220,5 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     add_workflow_bench_parser(kinds)
     add_degenerate_bench_parser(kinds)
     add_imaging_bench_parser(kinds)
+    add_realism_bench_parser(kinds)
     add_hardening_bench_parser(kinds)

@@ -14,10 +14,12 @@ import json
 import logging
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from drivers.carm_sim import add_carm_sim_parser
 from solver.case import load_case, write_case
+from solver.imaging.operating_room import NUISANCES, OperatingRoom, view_angles
 from solver.jsonfile import read_json_object
 from solver.plan import Plan
 from solver.result import result_document
@@ -29,6 +31,7 @@ from .calibrate import add_calibrate_parser
 from .calibrations import add_calibration_parser
 from .sim_calibration import write_calibration_set
 from .case_cli import add_case_parser
+from .measure import add_measure_parser
 from .sim_images import write_case_images
 from .plans import add_plan_parser
 from .replay import add_replay_parser
@@ -65,7 +68,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise ValueError("--tibia needs --landmarks (knee centre, ankle centre, anterior, side)")
     else:
         plan = Plan.from_meshes(args.tibia, args.fibula, args.landmarks)
-    config = SimulationConfig(view_angles_deg=args.views, noise_px=args.noise_px, seed=args.seed,
+    if getattr(args, "patient_id", None):
+        plan.patient_id = args.patient_id
+    room = _operating_room(args)
+    if room.names and room.names != ["views"] and not getattr(args, "images", False):
+        raise ValueError("operating-room nuisances other than the views are in the frames: add --images")
+    views = view_angles(room.draw(args.seed), args.views)
+    config = SimulationConfig(view_angles_deg=views, noise_px=args.noise_px, seed=args.seed,
                               init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd)
     case = simulate_case(plan, config)
     truth = {
@@ -73,16 +82,26 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         "str_deg": case.truth_str_deg,
         "T_cam_tibia": {v.view_id: T.to_json() for v, T in zip(case.views, case.truth_T_cam_tibia)},
         "T_tibia_pin": [T.to_json() for T in case.truth_T_tibia_pin],
-        "simulation": {"seed": args.seed, "noise_px": args.noise_px, "views_deg": list(args.views),
+        "simulation": {"seed": args.seed, "noise_px": args.noise_px, "views_deg": list(views),
+                       "nuisances": room.names,
                        "init_rot_sd_rad": args.init_rot_sd, "init_trans_sd_mm": args.init_trans_sd},
     }
     write_case(args.out, f"sim-{args.seed}", plan, case.views, case.initial, "simulated-carm",
                truth)
     if getattr(args, "images", False):
-        write_case_images(args.out, plan, case, "simulated-carm", args.seed)
+        write_case_images(args.out, plan, case, "simulated-carm", args.seed, room=room,
+                          patient_name=getattr(args, "patient_name", None))
     print(f"wrote simulated case to {args.out} (true CTR {case.truth_ctr_deg:+.2f} deg, "
           f"STR {case.truth_str_deg:+.2f} deg)")
     return 0
+
+
+def _operating_room(args: argparse.Namespace) -> OperatingRoom:
+    """The scene ``--scene`` names, with every nuisance flag given added to it."""
+    meshes = getattr(args, "nuisance_meshes", None)
+    base = (OperatingRoom.everything(meshes) if getattr(args, "scene", "idealised") == "operating-room"
+            else OperatingRoom(mesh_folder=meshes))
+    return replace(base, **{name: True for name in NUISANCES if getattr(args, name, False)})
 
 
 def _summary(doc: dict) -> str:
@@ -142,6 +161,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return cmd_solve(argparse.Namespace(case_dir=folder, json=folder / "result.json", method="slam"))
 
 
+def _shared_meshes() -> Path | None:
+    """The shared nuisance meshes beside the repository, when there (the simulator's only)."""
+    folder = Path(__file__).resolve().parents[2] / "shared" / "data" / "knee-nuisance"
+    return folder if folder.is_dir() else None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slamtka", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -161,6 +186,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calibration-images", type=int, metavar="N",
                    help="instead of a case, write N phantom frames of the simulated C-arm (plus an "
                         "empty frame and a duplicate) for `slamtka calibrate`")
+    p.add_argument("--scene", choices=("idealised", "operating-room"), default="idealised",
+                   help="idealised frames, or every operating-room nuisance at once")
+    for name in NUISANCES:
+        flag = "surgeon-views" if name == "views" else name.replace("_", "-")  # --views is taken
+        p.add_argument(f"--{flag}", dest=name, action="store_true",
+                       help=f"add the {name.replace('_', ' ')} nuisance (solver/imaging/operating_room.py)")
+    p.add_argument("--nuisance-meshes", type=Path, default=_shared_meshes(),
+                   help="folder with femur-generic-right.stl and patella-right.stl (metres)")
+    p.add_argument("--patient-id", help="Patient ID of the plan and the frames (default: the plan's)")
+    p.add_argument("--patient-name", help="Patient's Name in the frames (default: the Patient ID)")
     p.set_defaults(func=cmd_simulate)
 
     p = sub.add_parser("solve", help="measure the resection plane of a case folder")
@@ -179,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_calibrate_parser(sub)
     add_case_parser(sub)
     add_calibration_parser(sub)
+    add_measure_parser(sub)
     add_carm_sim_parser(sub)
     add_plan_parser(sub)
     add_status_parser(sub)

@@ -4,6 +4,8 @@ Adds to the folder written by ``solver.case.write_case``:
 
     frames/VIEW.dcm            each view as an XA DICOM frame from the simulated C-arm
     truth_silhouettes.json     the true outlines per view and label, raw (distorted) pixels
+                               (with an operating-room scene: the nuisances, and per view
+                               the indices of the outline points they hide)
     calibration.json           rewritten with the intensifier's distortion and pixel spacing
 
 and names them in ``case.json`` (``frames``, ``truth_silhouettes``). The case's
@@ -21,7 +23,8 @@ import numpy as np
 from pydicom.uid import generate_uid
 
 from solver.imaging.calibration import write_calibration
-from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from solver.imaging.operating_room import OperatingRoom, render_room, room_bodies, room_scene
+from solver.imaging.xray import XRayParams, XRayScene, default_distortion
 from solver.plan import Plan
 from solver.simulate import (
     DETECTOR_FIELD_MM,
@@ -36,13 +39,19 @@ __all__ = ["write_case_images"]
 
 
 def write_case_images(folder: Path, plan: Plan, case: SimulatedCase, calibration_id: str,
-                      seed: int, params: XRayParams = XRayParams()) -> list[Path]:
-    """Render every view of ``case``, write the frames and their truth; returns the frame paths."""
+                      seed: int, params: XRayParams = XRayParams(),
+                      room: OperatingRoom | None = None, patient_name: str | None = None) -> list[Path]:
+    """Render every view of ``case``, write the frames and their truth; returns the frame paths.
+
+    ``room``: the operating-room nuisances to render (drawn from ``seed``; none: the
+    idealised frames); the truth then also says which outline points they hide."""
     folder = Path(folder)
-    camera = case.views[0].camera
-    distortion = params.distortion or default_distortion(camera)
+    draw = (room or OperatingRoom()).draw(seed)
+    camera = draw.camera(case.views[0].camera)
+    distortion = draw.distortion(camera, params.distortion or default_distortion(camera))
     params = replace(params, distortion=distortion)
-    scene = XRayScene.from_plan(plan, params)
+    scene = room_scene(XRayScene.from_plan(plan, params), draw)
+    bodies = room_bodies(plan, draw)
     rng = np.random.default_rng(seed)
     spacing = DETECTOR_FIELD_MM / camera.width
     study, series = generate_uid(), generate_uid()
@@ -51,24 +60,31 @@ def write_case_images(folder: Path, plan: Plan, case: SimulatedCase, calibration
     paths, truth = [], {}
     for k, (view, T, angle) in enumerate(zip(case.views, case.truth_T_cam_tibia,
                                              case.config.view_angles_deg)):
-        radiograph = render_radiograph(plan, T, case.truth_T_tibia_pin, camera, params, rng, scene)
+        rendered = render_room(plan, T, case.truth_T_tibia_pin, camera, params, draw, rng, scene, bodies)
+        radiograph = rendered.radiograph
         frame = Frame(radiograph.image, (spacing, spacing), primary_angle_deg=float(angle),
                       secondary_angle_deg=0.0, sid_mm=SOURCE_TO_DETECTOR_MM,
                       sod_mm=SOURCE_TO_ISOCENTRE_MM, acquisition_datetime=start + timedelta(seconds=20 * k),
-                      patient_id=plan.patient_id, patient_name=plan.patient_id,
+                      patient_id=plan.patient_id, patient_name=patient_name or plan.patient_id,
                       study_uid=study, series_uid=series,
                       laterality="R" if plan.side == "right" else "L",
-                      bits_stored=params.bits_stored, instance_number=k + 1)
+                      bits_stored=radiograph.bits_stored if draw.processing is None
+                      else draw.processing["bits"], instance_number=k + 1)
         path = folder / "frames" / f"{view.view_id}.dcm"
         encode_frame(frame).save_as(path, enforce_file_format=True)
         paths.append(path)
         truth[view.view_id] = {label: np.round(points, 3).tolist()
                                for label, points in radiograph.silhouettes.items()}
+        if room is not None and room.names:
+            truth[view.view_id]["hidden"] = {label: np.flatnonzero(h).tolist()
+                                             for label, h in rendered.hidden.items()}
     (folder / "truth_silhouettes.json").write_text(json.dumps(
         {"format": "slamtka-contours/1", "units": "px", "coordinates": "raw",
+         "nuisances": room.names if room is not None else [],
          "views": [{"view_id": v, **labels} for v, labels in truth.items()]}))
-    write_calibration(folder / "calibration.json", camera, distortion, "simulated C-arm with "
-                      "image-intensifier distortion", calibration_id, (spacing, spacing))
+    detector = "flat-panel detector" if draw.room.flat_panel else "image-intensifier distortion"
+    write_calibration(folder / "calibration.json", camera, distortion, f"simulated C-arm with {detector}",
+                      calibration_id, (spacing, spacing))
     manifest_path = folder / "case.json"
     manifest = json.loads(manifest_path.read_text())
     manifest["frames"] = {v.view_id: f"frames/{v.view_id}.dcm" for v in case.views}

@@ -3,7 +3,8 @@
 Each gate returns the reason (a sentence naming the view, the model and the figure that
 failed) or None. The inputs are checked before the solve (two views far enough apart, every
 model seen in two of them); the answer after it (the contours fit the posed models, the pins'
-edge points agree about where each pin is, the pins are the block's parallel pair). A solve
+edge points agree about where each pin is, the pins are the block's parallel pair, the
+views moved as the encoders measured). A solve
 refused by an answer gate may have lost its way; the solver then restarts it from a global
 search (:func:`solver.slam.solve_joint`).
 """
@@ -44,8 +45,10 @@ def input_refusal(problem: JointProblem, initial: InitialGuess) -> str | None:
         seen = sum(len(problem.pixels[k, label]) >= c.min_pin_points
                    for k in range(problem.n_views))
         if seen < 2:
+            why = "".join(f"; view {v.view_id}: {label} {v.notes[label]}"
+                          for v in problem.views if label in v.notes)
             return (f"{label} is not seen in two views (needs >= {c.min_pin_points} contour "
-                    f"points in each; seen in {seen})")
+                    f"points in each; seen in {seen}){why}")
     separation = view_separation_deg(list(initial.T_cam_tibia))
     if separation < c.min_view_separation_deg:
         return (f"views are too close in angle ({separation:.1f} deg apart; at least "
@@ -114,6 +117,19 @@ def pin_divergence(problem: JointProblem, state: State) -> str | None:
         return (f"the pins are {angle_deg:.1f} deg from parallel (> {limit_deg:g} deg): the "
                 f"cutting block holds them parallel, so a pin's pose is wrong")
     return None
+
+
+def odometry_misfit(rms: dict[str, float], limit_sigma: float) -> str | None:
+    """Why the solved views disagree with the encoders' measured C-arm motion, or None.
+
+    The contours of a wrong basin can be fitted by views the C-arm never moved between:
+    the pins' and bone's edges then look fine while the relative pose of the views strays
+    many sigmas from what the encoders measured (none when the solve had no E_odo)."""
+    odo = rms.get("E_odo")
+    if odo is None or odo <= limit_sigma:
+        return None
+    return (f"the views disagree with the encoders' C-arm motion (E_odo residual "
+            f"{odo:.1f} sigma RMS > {limit_sigma:g}): a local minimum")
 
 
 def outline_misfit(problem: JointProblem, state: State, labels: tuple[str, ...],

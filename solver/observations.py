@@ -113,6 +113,9 @@ class ViewObservation:
     view_id: str
     camera: Camera
     contours: dict[str, np.ndarray]  # label -> (N, 2) undistorted pixel positions
+    # Why a label has no contour in this view, when the extraction could say ("hidden by
+    # metal"): named in the refusal.
+    notes: dict[str, str] = field(default_factory=dict)
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:

@@ -21,7 +21,7 @@ from .plan import Plan
 from .silhouette import ContourGenerator
 from .slam import InitialGuess
 
-__all__ = ["SimulationConfig", "SimulatedCase", "simulate_case", "default_camera", "perturb",
+__all__ = ["SimulationConfig", "SimulatedCase", "SimulationError", "simulate_case", "default_camera", "perturb",
            "segmentation_error"]
 
 # A mobile C-arm: ~1000 mm source to detector, 1024 px over a 23 cm image intensifier,
@@ -34,6 +34,11 @@ DETECTOR_PIXELS = 1024
 
 def default_camera() -> Camera:
     return Camera.from_geometry(SOURCE_TO_DETECTOR_MM, DETECTOR_FIELD_MM, DETECTOR_PIXELS)
+
+
+class SimulationError(RuntimeError):
+    """The simulator cannot build this case (e.g. its random pin line misses the bone):
+    a study skips the seed and goes on."""
 
 
 ROT_SD_PER_LEVEL_RAD = 0.1
@@ -110,7 +115,7 @@ def _place_pins(plan: Plan, rng: np.random.Generator) -> tuple[list[Pose], float
         start = plane_point + across * offset - posterior * 150.0  # far anterior, outside
         entry = bone_entry_mm(sdf, T_tibia_anat, start, posterior, 0.5)
         if entry is None:
-            raise RuntimeError("simulated pin line misses the bone; cannot place pins")
+            raise SimulationError("simulated pin line misses the bone; cannot place pins")
         # Drill 25-45 mm, but keep the tip at least 3 mm inside the bone.
         for drilled in np.linspace(rng.uniform(25.0, 45.0), 8.0, 40):
             tip_anat = start + (entry + drilled) * posterior

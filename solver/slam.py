@@ -34,6 +34,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from . import gates
 from .alignment import align_view_in_image
@@ -189,7 +190,21 @@ class SolverConfig:
     # global search, which measures it better (with an 8 deg limit instead, its level's p95
     # rose from 0.25 to 0.38 deg STR and from 0.13 to 0.17 deg CTR).
     max_pin_divergence_deg: float = 3.0
+    # The encoders' motion between the views (E_odo) left further off than this (whitened
+    # RMS over the views' relative poses, in sigmas: 6 components each): the contours were
+    # fitted by poses the C-arm did not move through, a local minimum. Refused as astray, so
+    # the global search restarts it. Correct solves of simulated contours left at most 5.2
+    # (190 study solves, phantom and real tibia, levels 1-5, median 2.5); a held-out solve
+    # 0.8 deg off (8 sigma) left 8.9. Extracted contours carry a bias the model does not
+    # know: one `bench imaging` case left 6.9-7.0, measured 0.41 deg off (4.7 sigma), which
+    # a limit of 6 refused; 7.5 keeps it and still refuses the held-out one.
+    max_odometry_rms_sigma: float = 7.5
     max_coarse_bone_median_px: float = 4.0  # ... the bone's, after its own stage: gone astray
+    # Bone contour pixels this far from the tibia's outline after the bone's own stage are
+    # another body's edges (femur, patella, metal, collimator) and are dropped before the
+    # pins and the joint stages (None: keep every pixel). Simulated 2 px contour noise
+    # leaves the tibia's own pixels within ~8 px there.
+    foreign_edge_px: float | None = 15.0
     max_angle_sigma_deg: float = 2.0
     # Restarts from a global set-up search when the solve goes astray (none: no restart):
     # first within +-30 deg of the encoders' guess, then, each if the last fails too, +-60
@@ -315,7 +330,7 @@ class JointProblem:
     """Variables, terms and gauge of one solve, built from a plan and the views."""
 
     def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig):
-        self.plan, self.views, self.config = plan, views, config
+        self.plan, self.views, self.config = plan, list(views), config
         self.bone = plan.bone_model()
         self.pin = plan.pin_model()
         self.n_views = len(views)
@@ -324,6 +339,36 @@ class JointProblem:
         # ... and more sparsely for the coarse silhouette stages (SolverConfig.coarse_thinning).
         self.coarse_pixels = {key: thin_contour(px, config.edge_spacing_px * config.coarse_thinning)
                               for key, px in self.pixels.items()}
+
+    def attributed(self, poses: tuple[Pose, ...]) -> JointProblem:
+        """The problem without the bone contour pixels that no part of the tibia's outline,
+        traced at ``poses``, comes near (``SolverConfig.foreign_edge_px``): the edges of a
+        femur, a patella, a retractor or a collimator blade that extraction could not tell
+        from the tibia's. Only views whose traced outline lies on their contour (median
+        ``max_coarse_bone_median_px``) are pruned: a model off its contour says nothing
+        about which edges are its own. ``self`` when nothing is dropped."""
+        c = self.config
+        views = list(self.views)
+        for k, view in enumerate(self.views):
+            pixels = view.contours["bone"]
+            if len(pixels) == 0:
+                continue
+            T = poses[k]
+            outline = self.bone.contour.outline_points(T, view.camera, c.silhouette_spacing_px,
+                                                       outer_only=True)
+            if len(outline) == 0:
+                continue
+            uv = view.camera.project(T.apply(outline))
+            if float(np.median(view.distance_map("bone").query(uv)[0])) > c.max_coarse_bone_median_px:
+                continue
+            near = cKDTree(uv).query(pixels)[0] <= c.foreign_edge_px
+            if near.all():
+                continue
+            views[k] = ViewObservation(view.view_id, view.camera, {**view.contours, "bone": pixels[near]},
+                                       view.notes)
+        if all(a is b for a, b in zip(views, self.views)):
+            return self
+        return JointProblem(self.plan, views, c)
 
     def point_counts(self) -> dict[str, int]:
         """Kept contour points per view and label, for the result document."""
@@ -526,6 +571,8 @@ class _Schedule:
         if method.startswith("backprojection"):
             return self.back_projection(state, split=method.endswith("split"))
         state = self.views_on_bone_silhouette(state)
+        if c.foreign_edge_px is not None:
+            p = self.problem = p.attributed(state.poses)
         astray = gates.outline_misfit(p, state, ("bone",), c.max_coarse_bone_median_px)
         if astray is not None:
             # Lost already: the caller may restart from a global search at once.
@@ -674,8 +721,11 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     state, terms, fine = schedule.run(problem.config.method, State(poses, np.zeros((0, 3))))
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,
                          fine.term_costs, schedule.seconds, fine.history)
-    outcome = _judged(problem, state, terms, fine, report, start)
-    outcome.edge_point_counts = problem.named(problem.edge_point_counts(terms))
+    attributed = schedule.problem  # with the foreign edges dropped
+    outcome = _judged(attributed, state, terms, fine, report, start)
+    # The contour points offered (as extracted), and those that kept an edge point.
+    outcome.point_counts = problem.point_counts()
+    outcome.edge_point_counts = attributed.named(attributed.edge_point_counts(terms))
     return outcome
 
 
@@ -690,7 +740,8 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
                         rms, start, went_astray=True)
     misfit = (gates.contour_misfit(problem, state, terms, rms)
-              or gates.pin_divergence(problem, state))
+              or gates.pin_divergence(problem, state)
+              or gates.odometry_misfit(rms, config.max_odometry_rms_sigma))
     if misfit is not None:
         return _refused(problem, misfit, state, report, rms, start, went_astray=True)
     final_views = list(state.poses[:n])

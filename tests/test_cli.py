@@ -86,3 +86,18 @@ def test_speed_benchmark_reports_time_iterations_stages_and_memory(tmp_path):
     assert 0 < accepted <= run["iterations"]
     assert "joint" in run["stages"] and doc["median_seconds"] > 0 and run["cpu_seconds"] > 0
     assert 0 < doc["peak_allocated_mb_per_solve"] < doc["process_peak_rss_mb"]
+
+
+def test_accuracy_study_skips_a_case_the_simulator_cannot_build_and_goes_on(tmp_path):
+    """Seed 249 of the real tibia draws a pin line that misses the bone: the case is
+    recorded as skipped with its seed, and the study measures the others."""
+    if not (SHARED_DATA / "tibia-right.stl").exists():
+        pytest.skip("the shared real knee meshes are not available")
+    out = tmp_path / "accuracy"
+    assert main(["bench", "accuracy", "--runs", "2", "--levels", "0", "--seed", "248", "--workers", "1",
+                 "--tibia", str(SHARED_DATA / "tibia-right.stl"), "--fibula",
+                 str(SHARED_DATA / "fibula-right.stl"), "--landmarks", str(REAL_LANDMARKS),
+                 "--out", str(out)]) == 0
+    (result,) = json.loads((out / "results.json").read_text())["results"]
+    assert result["runs"] == 1 and result["converged"] == 1
+    assert result["skipped"] == ["seed 249: simulated pin line misses the bone; cannot place pins"]

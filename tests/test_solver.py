@@ -1,11 +1,13 @@
 """The joint solver: Jacobians, the Schur elimination, quality gates and accuracy."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from solver import optimizer
-from solver.geometry import Pose
+from solver import gates, optimizer
+from solver.geometry import Pose, rotation_about
 from solver.observations import ViewObservation
 from solver.optimizer import State
 from solver.simulate import SimulationConfig, simulate_case
@@ -588,3 +590,22 @@ def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_
         plain.truth_T_tibia_pin + plain.truth_T_cam_tibia,
         mismatched.truth_T_tibia_pin + mismatched.truth_T_cam_tibia))
     assert not np.array_equal(plain.views[0].contours["bone"], mismatched.views[0].contours["bone"])
+
+
+def test_views_that_disagree_with_the_encoders_motion_are_refused(phantom_plan):
+    """A solve whose views moved otherwise than the encoders measured (here the encoders
+    are told 6 deg wrong, 12 sigma) fits the contours, but not the C-arm's motion: the E_odo
+    gate refuses it (a local minimum left this way was measured 0.8 deg off)."""
+    case = simulate_case(phantom_plan, SimulationConfig(seed=3))
+    assert gates.odometry_misfit({"E_odo": 3.4}, 7.5) is None
+    assert "encoders' C-arm motion" in gates.odometry_misfit({"E_odo": 8.9}, 7.5)
+    assert gates.odometry_misfit({"E_rp": 9.0}, 7.5) is None
+    first, second = case.initial.T_cam_tibia
+    anat = phantom_plan.landmarks.T_tibia_anat()
+    turn = Pose(rotation_about([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3))
+    told = replace(case.initial, T_cam_tibia=(first, second @ anat @ turn @ anat.inverse()))
+    outcome = solve_joint(phantom_plan, case.views, told, SolverConfig())
+    assert outcome.status == "not_measured"
+    assert outcome.residual_rms.get("E_odo", 0.0) > 7.5 or "encoders" in outcome.reason
+    honest = solve_joint(phantom_plan, case.views, case.initial, SolverConfig())
+    assert honest.status == "measured" and honest.residual_rms["E_odo"] < 7.5

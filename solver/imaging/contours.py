@@ -7,7 +7,8 @@ Pipeline (all tuning in :class:`ContourConfig`):
    the polarity (attenuating objects dark or bright) follows from which side is brighter.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
-3. Pins: ``A`` minus a 100-px median background above ``pin_threshold`` (hysteresis). Seen
+3. Pins: ``A`` minus a 100-px median background, seeded above ``pin_threshold`` and grown
+   to half each shadow's peak; only bars of a pin's width and shape are kept. Seen
    nearly along the resection plane the two parallel pins often overlap, staggered along
    their common axis; steel saturates, so one shadow is split into two bars where its long
    sides step from one pin's edge to the other's (``pin_min_step_px``).
@@ -42,7 +43,7 @@ import cv2
 import numpy as np
 
 from ..jsonfile import read_json_object
-from .field import FieldError, attenuation, field_of_view, fill_holes
+from .field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]
@@ -72,7 +73,13 @@ class ContourConfig:
     min_edge_strength: float = 0.015  # attenuation drop per pixel at an accepted edge
     bone_edge_offset_px: float = 0.0  # outward shift of bone edges (blur bias of a site)
     bone_reach_in_px: float = 2.0  # further inward search: a gentle edge leaves the mask outside it
-    pin_threshold: float = 0.8  # attenuation of steel over its 100-px median background
+    # Attenuation over its 100-px median background that seeds a steel shadow (grown to
+    # half its peak); scatter brings steel down to ~0.6, bone's tangent cortex reaches ~0.9.
+    pin_threshold: float = 0.5
+    # Attenuation over the field's median above which a region wider than two pins is
+    # opaque (collimator and retractor blades, a femur end-on); tibia with fibula stay below.
+    opaque_excess: float = 1.5
+    pin_width_px: tuple[float, float] = (12.0, 45.0)  # widths of pin shadows (3-4.5 mm, x1.6, 0.22 mm px)
     pin_min_area_px: int = 80
     pin_edge_offset_px: float = 0.0
     pin_min_step_px: float = 1.0  # least offset between overlapping pins' edges told apart
@@ -313,6 +320,46 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
 
 
+_HEAD_MARGIN_PX = 3.0
+# The two pins of a block are parallel and alike: two shadows are taken as the pair only
+# when this close in direction and width; of several such pairs, the closest.
+_PIN_CANDIDATES = 6
+_PAIR_MAX_ANGLE_DEG = 8.0
+_PAIR_MAX_WIDTH_RATIO = 1.4
+
+
+def _robust_width(bar: _Bar, points: np.ndarray) -> float:
+    across = (points - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
+    return 4.0 * float(np.median(np.abs(across)))
+
+
+def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | None:
+    """The two shadows most alike in direction and width (the block's parallel pins), or
+    None when no two are alike enough to be the pins."""
+    best, best_cost = None, np.inf
+    widths = [_robust_width(bar, points) for bar, points in fitted]
+    for i in range(len(fitted)):
+        for j in range(i + 1, len(fitted)):
+            cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
+            angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
+            ratio = max(widths[i], widths[j]) / max(min(widths[i], widths[j]), 1e-9)
+            if angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO:
+                continue
+            cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if cost < best_cost:
+                best, best_cost = (i, j), cost
+    return best
+
+
+def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
+    """A pin's edge points without those of a head wider than its shaft (the plan's pin
+    model has none): points further from the axis than the shaft's edges by a margin."""
+    if len(edges) < _MIN_PIN_EDGES:
+        return edges
+    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    return edges[across <= np.median(across) + _HEAD_MARGIN_PX]
+
+
 def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | None) -> list[_Bar]:
     if expected is not None:
         expected = np.asarray(expected, float).reshape(2, 2)
@@ -326,6 +373,36 @@ def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | 
 
 
 _MIN_PIN_EDGES = 20  # fewer edge points than this are no pin shadow
+# A pin's shadow (or two overlapping along their axis) is a straight bar: this much longer
+# than wide, filling this share of its rectangle. Retractor blades, collimator blades,
+# lead letters and a femur's end-on shaft are wider, shorter or not straight.
+_PIN_ELONGATION = 3.0
+_PIN_FILL = 0.7
+_PIN_UNION_WIDTH = 1.8  # two pins side by side: at most this many widths wide
+_PIN_GROW_TO = 0.8  # excess to which an unscattered steel shadow is grown
+_PIN_PEAK_SHARE = 0.5  # of the strongest bar's peak excess, that another bar must reach
+
+
+def _pin_like(labels: np.ndarray, count: int, config: ContourConfig) -> np.ndarray:
+    """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
+    ys, xs = np.nonzero(labels)
+    order = np.argsort(labels[ys, xs], kind="stable")
+    ys, xs = ys[order], xs[order]
+    bounds = np.searchsorted(labels[ys, xs], np.arange(count + 1))
+    ok = np.zeros(count, bool)
+    lo, hi = config.pin_width_px
+    for label in range(1, count):
+        a, b = bounds[label], bounds[label + 1]
+        if b - a < config.pin_min_area_px:
+            continue
+        bar = _fit_bar(np.column_stack([xs[a:b], ys[a:b]]).astype(float))
+        # Across a filled bar offsets are uniform: four times their median is its width,
+        # whatever a head on its end adds.
+        across = (np.column_stack([xs[a:b], ys[a:b]]) - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
+        width, length = 4.0 * float(np.median(np.abs(across))), 2.0 * bar.half_length
+        ok[label] = (lo <= width <= _PIN_UNION_WIDTH * hi and length >= _PIN_ELONGATION * width
+                     and (b - a) >= _PIN_FILL * width * length)
+    return ok
 
 
 def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
@@ -336,14 +413,26 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
     background = cv2.medianBlur(quantised, 25).astype(np.float32) / 255 * (hi - lo) + lo
     background = cv2.resize(background, A.shape[::-1], interpolation=cv2.INTER_LINEAR)
-    excess = np.where(valid, A - background, 0.0)
-    weak = excess > config.pin_threshold
-    strong = excess > 2.0 * config.pin_threshold
+    excess = np.where(valid, A - background, 0.0).astype(np.float32)
+    # Scatter adds to what passes steel and bone alike, so steel's excess over its
+    # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
+    # its seeds down to half of its own peak excess where that is below _PIN_GROW_TO.
+    strong = excess > config.pin_threshold
+    count, seeds = cv2.connectedComponents(strong.astype(np.uint8), connectivity=8)
+    peak = np.zeros(count, np.float32)
+    np.maximum.at(peak, seeds[strong], excess[strong])
+    reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))
+    weak = (excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)
     count, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
     sizes = np.bincount(labels.ravel(), minlength=count)
-    seeded = np.bincount(labels[strong], minlength=count) > 0
-    good = seeded & (sizes >= config.pin_min_area_px)
+    good = sizes >= config.pin_min_area_px
     good[0] = False
+    good &= _pin_like(labels, count, config)
+    # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
+    tops = np.zeros(count, np.float32)
+    np.maximum.at(tops, labels[weak], excess[weak])
+    if good.any():
+        good &= tops >= _PIN_PEAK_SHARE * tops[good].max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = _outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
@@ -360,16 +449,27 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
         return [empty, empty], mask, {"pins_found": 0}
     ys, xs = np.nonzero(mask)
     kept = np.bincount(labels[ys, xs], minlength=count)  # pixels of each shadow after the opening
-    if np.count_nonzero(kept) >= 2:
-        pixels = np.column_stack([xs, ys]).astype(float)
-        bars, overlap = [_fit_bar(pixels[labels[ys, xs] == t]) for t in np.argsort(kept)[::-1][:2]], "apart"
+    pixels = np.column_stack([xs, ys]).astype(float)
+    shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
+    fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
+    pair = _parallel_pair(fitted)
+    if pair is not None:
+        bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
+        # One shadow holds both pins (or the others are no pin's twin): split the largest.
+        own = cv2.dilate((labels == shadows[0]).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        at = np.clip(np.round(edges).astype(int), 0, [A.shape[1] - 1, A.shape[0] - 1])
+        mine = own[at[:, 1], at[:, 0]]
+        edges, normals = edges[mine], normals[mine]
+        if len(edges) < _MIN_PIN_EDGES:
+            empty = np.zeros((0, 2))
+            return [empty, empty], mask, {"pins_found": 0}
         bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
     # Where the two pins' edges are closer than a step can be seen, a point is on both.
     shared = 0.5 * config.pin_min_step_px
-    result = [edges[distance[i] <= distance[1 - i] + shared] for i in range(2)]
+    result = [_without_head(edges[distance[i] <= distance[1 - i] + shared], bars[i]) for i in range(2)]
     info = {"pins_found": 2 if all(len(r) for r in result) else sum(bool(len(r)) for r in result),
             "pins_overlap": overlap,
             "pin_centres_px": [b.centre.tolist() for b in bars],
@@ -459,6 +559,53 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
 
 
+def _smoothing_for_noise(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> float:
+    """The Gaussian sigma (px) that keeps the noise of the attenuation's gradient well under
+    the soft tissue's barrier: ``config.smoothing_px`` at full dose, more at low dose (a
+    tenth of the quanta, ~3x the noise per pixel). The noise is read from differences of
+    neighbouring pixels (robust: edges are few)."""
+    diff = (A[1:, :] - A[:-1, :])[::2, ::2][(valid[1:, :] & valid[:-1, :])[::2, ::2]]
+    if diff.size < 100:
+        return config.smoothing_px
+    noise = 1.4826 * float(np.median(np.abs(diff - np.median(diff)))) / np.sqrt(2.0)
+    # The derivative of a Gaussian of sigma s passes white noise of SD n as ~n / (2.5 s^2).
+    needed = np.sqrt(noise / (2.5 * _GRADIENT_NOISE_SHARE * config.barrier_strength))
+    return float(np.clip(needed, config.smoothing_px, _MAX_SMOOTHING_PX))
+
+
+_GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD at most
+_MAX_SMOOTHING_PX = 4.0
+
+
+_HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
+
+
+def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray) -> str:
+    """Why pin ``index`` (0, 1) has no edges in a frame, in words for the refusal."""
+    if broad.any():
+        if expected is None:
+            return "not found (hidden by metal?)"
+        centre = np.asarray(expected, float).reshape(2, 2)[index]
+        ys, xs = np.nonzero(broad[::4, ::4])
+        if len(xs) and float(np.min(np.hypot(4 * xs - centre[0], 4 * ys - centre[1]))) <= _HIDDEN_NEAR_PX:
+            return "hidden by metal"
+    return "not found (no steel bar of a pin's shape)"
+
+
+def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """Regions far more attenuating than the field and wider than any pin: collimator
+    blades, retractor blades, a femur seen end-on. No edge in or beside them is the tibia's
+    (what they hide is left out, not guessed), and no steel in them is a pin."""
+    sub = A[::2, ::2][valid[::2, ::2]]
+    if sub.size == 0:
+        return np.zeros_like(valid)
+    opaque = (valid & (A > float(np.median(sub)) + config.opaque_excess)).astype(np.uint8)
+    size = int(2 * config.pin_width_px[1] + 1) | 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    broad = cv2.morphologyEx(opaque, cv2.MORPH_OPEN, kernel)
+    return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
+
+
 def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     h, w = allowed.shape
     pix = np.round(points).astype(int)
@@ -468,18 +615,44 @@ def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     return points[ok]
 
 
+# An unforeseen failure inside a step is still a frame we cannot read, not a crash of the
+# caller: it is refused naming the step (the fuzz test over varied frames keeps it unused).
+_UNFORESEEN = (ValueError, TypeError, IndexError, ZeroDivisionError, FloatingPointError,
+               np.linalg.LinAlgError, cv2.error)
+UNFORESEEN_PREFIX = "contour extraction failed unexpectedly"
+
+
 def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig(),
                      expected_pins: np.ndarray | None = None) -> ExtractedContours:
     """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
 
     ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
-    initial pose) that decide the labels instead of ``config.pin_order``.
+    initial pose) that decide the labels instead of ``config.pin_order``. Whatever the
+    frame, the only error raised is :class:`ContourError`, with the reason.
     """
+    try:
+        return _extract(pixels, config, expected_pins)
+    except ContourError:
+        raise
+    except FieldError as exc:
+        raise ContourError(str(exc)) from None
+    except _UNFORESEEN as exc:
+        raise ContourError(f"{UNFORESEEN_PREFIX} ({type(exc).__name__}: {exc})") from exc
+
+
+def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None
+             ) -> ExtractedContours:
     start = time.perf_counter()
     image = np.asarray(pixels)
     if image.ndim != 2 or min(image.shape) < 64:
         raise ContourError(f"expected a 2-D grey-scale frame of at least 64 x 64, got {image.shape}")
+    if image.dtype.kind not in "uif" or image.dtype.kind == "c":
+        raise ContourError(f"expected grey levels as numbers, got {image.dtype}")
+    if image.dtype.kind == "f" and np.all(np.isfinite(image)) and np.ptp(image) > 0:
+        # Floating-point grey levels (any scale) onto a 16-bit range: attenuation counts in quanta.
+        image = (image - image.min()) * (65535.0 / np.ptp(image))
     h, w = image.shape
+    image, overlay = remove_overlays(image)
     centre, radius, outside, sign = field_of_view(image, config.polarity)
     A = attenuation(image, outside, sign)
     u, v = np.arange(w)[None, :], np.arange(h)[:, None]
@@ -487,10 +660,16 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     valid = r < (radius if radius is not None else np.inf) - 2.0
     if radius is None:
         valid &= (u >= 2) & (v >= 2) & (u < w - 2) & (v < h - 2)
+    valid &= ~cv2.dilate(overlay.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
+    if valid.sum() < config.min_bone_area_px:
+        raise ContourError("the field of view is too small to hold a tibia")
+    broad = _broad_opaque(A, valid, config)
+    valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
     A = np.where(valid, A, fill).astype(np.float32)
-    smooth = cv2.GaussianBlur(A, (0, 0), config.smoothing_px)
+    smoothing = _smoothing_for_noise(A, valid, config)
+    smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
     grad = (cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
             cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
     coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
@@ -503,11 +682,16 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     rim_ok = r < (radius if radius is not None else np.inf) - margin
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+    rim_ok &= _distance_to(broad) > margin
     bone = _keep(bone, rim_ok & (_distance_to(pins) > config.pin_exclusion_px) & (to_air > 3.0))
     pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
+    missing = {label: _why_missing(k, expected_pins, broad)
+               for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
+               if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
+        "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }

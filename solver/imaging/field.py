@@ -1,8 +1,18 @@
 """The lit field of an X-ray frame and its attenuation image, shared by contours and calibration.
 
-An image intensifier images a circle; the frame's corners carry only the no-signal level.
-Which side is brighter tells the polarity (MONOCHROME2 with bone and metal dark, or an
-inverted image), and ``-log(signal)`` turns the frame into attenuation, in which bodies add.
+Two detectors are met in the operating room. An image intensifier images a circle and its
+frame's corners carry only a flat no-signal level; a flat panel images the whole (square)
+frame, and its corners show air, the leg or a collimator shutter, with quantum noise. The
+circle is accepted only when a flat level around the corners ends on a circle of plausible
+size; otherwise the whole frame is the field.
+
+Polarity (MONOCHROME2 with bone and metal dark, or an inverted image) comes from the content:
+a knee frame is centred on the leg, so its periphery is less attenuating than its centre
+(:func:`_periphery_asymmetry`); where that is not clear, steel pins, the narrow bodies that
+attenuate most, stand out on the attenuating side (:func:`polarity_sign`). Only when both are
+ambiguous does the intensifier's no-signal level decide (the side it lies on is "no signal").
+
+``-log(signal)`` turns the frame into attenuation, in which bodies add.
 """
 
 from __future__ import annotations
@@ -10,15 +20,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["FieldError", "field_of_view", "attenuation", "fill_holes"]
+__all__ = ["FieldError", "field_of_view", "attenuation", "fill_holes", "polarity_sign", "remove_overlays"]
 
 
 class FieldError(ValueError):
     """A frame whose field of view cannot be found, with the reason."""
 
 
-def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """Circle through most of the points (RANSAC over triplets), refined by least squares.
+def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+    """Circle through most of the points (RANSAC over triplets), refined by least squares,
+    and the share of the points on it.
 
     Objects crossing the rim of the field (a pin sticking out) dent its boundary, so the
     consensus circle, not a plain fit, is the field.
@@ -27,6 +38,8 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     a, b, c = triplets[:, 0], triplets[:, 1], triplets[:, 2]
     d = 2 * (a[:, 0] * (b[:, 1] - c[:, 1]) + b[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - b[:, 1]))
     ok = np.abs(d) > 1e-6
+    if not ok.any():
+        return np.zeros(2), np.inf, 0.0
     a, b, c, d = a[ok], b[ok], c[ok], d[ok]
     sa, sb, sc = (a**2).sum(1), (b**2).sum(1), (c**2).sum(1)
     centres = np.column_stack([
@@ -39,36 +52,225 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     best = int(np.argmax((residual < 1.5).sum(axis=1)))
     keep = np.abs(np.linalg.norm(points - centres[best], axis=1) - radii[best]) < 1.5
     p = points[keep]
+    if len(p) < 3:
+        return centres[best], float(radii[best]), float(np.mean(keep))
     M = np.column_stack([2 * p, np.ones(len(p))])
     sol = np.linalg.lstsq(M, (p**2).sum(axis=1), rcond=None)[0]
-    return sol[:2], float(np.sqrt(sol[2] + sol[:2] @ sol[:2]))
+    r2 = sol[2] + sol[:2] @ sol[:2]
+    return sol[:2], float(np.sqrt(max(r2, 0.0))), float(np.mean(keep))
 
 
-def field_of_view(image: np.ndarray, polarity: str) -> tuple[np.ndarray, float | None, float, int]:
-    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal."""
+# A circle is the intensifier's field only if this share of the flat region's boundary lies
+# on it (steel crossing the rim takes a share of the boundary), its radius is this share of the frame's shorter side to its diagonal, and its
+# boundary points span this arc about its centre (a straight skin line fits a huge circle).
+_CIRCLE_INLIERS = 0.35
+_CIRCLE_RADIUS = (0.25, 0.8)
+_CIRCLE_ARC_DEG = 180.0
+
+
+def _circular_field(image: np.ndarray, span: float) -> tuple[np.ndarray, float, float] | None:
+    """The intensifier's circle (centre, radius) and no-signal level, or None."""
     h, w = image.shape
     c = max(4, min(h, w) // 64)
-    corners = np.concatenate([image[:c, :c].ravel(), image[:c, -c:].ravel(),
-                              image[-c:, :c].ravel(), image[-c:, -c:].ravel()])
-    outside = float(np.median(corners))
-    inside = float(np.median(image[h // 4: 3 * h // 4, w // 4: 3 * w // 4]))
-    sign = {"dark": 1, "bright": -1}.get(polarity, 1 if inside >= outside else -1)
-    if abs(inside - outside) < 8.0 * (np.std(corners) + 1.0):
-        # Corners carry signal: a flat-panel or cropped frame without a circular field.
-        level = float(np.min(image)) if sign > 0 else float(np.max(image))
-        return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), None, level, sign
-    lit = (sign * (image.astype(np.float32) - outside) > 0.5 * abs(inside - outside)).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(lit, connectivity=8)
-    largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    region = fill_holes(labels == largest).astype(np.uint8)
+    patches = [image[:c, :c], image[:c, -c:], image[-c:, :c], image[-c:, -c:]]
+    levels = np.array([np.median(p) for p in patches])
+    noise = max(float(np.max([np.std(p) for p in patches])), 1e-3 * span)
+    # No-signal corners are flat and at one level; corners with air or the leg are not.
+    if noise > 0.02 * span or np.ptp(levels) > 0.02 * span:
+        return None
+    outside = float(np.median(levels))
+    flat = np.abs(image - outside) <= max(4.0 * noise, 0.01 * span)
+    count, labels = cv2.connectedComponents(flat.astype(np.uint8), connectivity=8)
+    corner_labels = np.unique([labels[0, 0], labels[0, -1], labels[-1, 0], labels[-1, -1]])
+    corner_labels = corner_labels[corner_labels > 0]
+    if len(corner_labels) == 0:
+        return None
+    region = fill_holes(~np.isin(labels, corner_labels)).astype(np.uint8)
     boundary = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
+    if not boundary:
+        return None
     points = np.vstack([b.reshape(-1, 2) for b in boundary]).astype(float)
     # Drop the frame's border: the field may be cut by the frame.
     points = points[(points[:, 0] > 1) & (points[:, 1] > 1) & (points[:, 0] < w - 2) & (points[:, 1] < h - 2)]
     if len(points) < 50:
-        raise FieldError("the circular field of view could not be found")
-    centre, radius = _fit_circle(points, np.random.default_rng(0))
-    return centre, radius, outside, sign
+        return None
+    centre, radius, share = _fit_circle(points, np.random.default_rng(0))
+    if not (np.isfinite(radius) and share >= _CIRCLE_INLIERS
+            and _CIRCLE_RADIUS[0] * min(h, w) <= radius <= _CIRCLE_RADIUS[1] * np.hypot(h, w)
+            and -0.25 * w <= centre[0] <= 1.25 * w and -0.25 * h <= centre[1] <= 1.25 * h):
+        return None
+    on = points[np.abs(np.linalg.norm(points - centre, axis=1) - radius) < 1.5]
+    angles = np.sort(np.arctan2(on[:, 1] - centre[1], on[:, 0] - centre[0]))
+    gaps = np.diff(np.concatenate([angles, angles[:1] + 2 * np.pi]))
+    if np.degrees(2 * np.pi - gaps.max()) < _CIRCLE_ARC_DEG:
+        return None
+    return centre, radius, outside
+
+
+_BAR_CONTRASTS = (0.1, 0.2, 0.3, 0.5)  # of the central field's 1-99 percentile range
+_CENTRAL_SHARE = 0.7  # of the field's half-size: where steel bars are looked for
+
+
+def polarity_sign(image: np.ndarray, lit: np.ndarray) -> int | None:
+    """+1 if attenuating bodies are dark, -1 if bright, None if the content does not say.
+
+    At a quarter of the resolution (thin burned-in text strokes fade there; a pin 3 mm
+    thick stays several pixels wide) the black and white top-hats with an element wider
+    than a pin pick the narrow bodies darker and brighter than their surroundings. Steel
+    bars stand out most, on the attenuating side. Outside the field (and beyond the frame)
+    each top-hat sees the extreme of its own sign, so that no strip of air along the rim
+    or the frame's edge passes for a bar."""
+    small = cv2.resize(image.astype(np.float32), None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    inside = cv2.resize(lit.astype(np.uint8), small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    # The pins are near the centre of a knee frame; the periphery holds what misleads: air
+    # strips beside the skin, collimator blades, annotations.
+    vs, us = np.nonzero(inside)
+    if len(us) == 0:
+        return None
+    centre = np.array([us.mean(), vs.mean()])
+    reach = _CENTRAL_SHARE * 0.5 * min(np.ptp(us) + 1, np.ptp(vs) + 1)
+    gv, gu = np.mgrid[0:small.shape[0], 0:small.shape[1]]
+    central = inside & (np.hypot(gu - centre[0], gv - centre[1]) < reach)
+    if central.sum() < 400:
+        return None
+    lo, hi = np.percentile(small[central], [1, 99])
+    if hi - lo <= 0:
+        return None
+    norm = np.clip((small - lo) / (hi - lo), -0.5, 1.5)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (17, 17))
+    pad = 9
+    shares = []
+    for op, fill in ((cv2.MORPH_BLACKHAT, -0.5), (cv2.MORPH_TOPHAT, 1.5)):
+        padded = cv2.copyMakeBorder(np.where(inside, norm, fill).astype(np.float32), pad, pad, pad, pad,
+                                    cv2.BORDER_CONSTANT, value=fill)
+        hat = cv2.morphologyEx(padded, op, kernel)[pad:-pad, pad:-pad]
+        # Over several contrasts: steel stands out at all of them, in linear and log frames.
+        shares.append(float(sum(np.mean(hat[central] > t) for t in _BAR_CONTRASTS)))
+    dark_share, bright_share = shares
+    if max(shares) < 5e-4 or max(shares) < 1.5 * min(shares):
+        return None
+    return 1 if dark_share > bright_share else -1
+
+
+# The periphery's asymmetry (below), in parts of the field's 1-99 percentile range, that
+# decides the polarity on its own, and that decides it when the steel does not.
+_RIM_DECISIVE = 0.15
+_RIM_WEAK = 0.03
+
+
+def _periphery_asymmetry(image: np.ndarray, lit: np.ndarray, centre: np.ndarray,
+                         radius: float | None) -> float:
+    """Positive when the field's periphery is brighter than its centre, negative if darker.
+
+    A knee frame is centred on the leg, thickest (and holding the bone) in the middle:
+    the periphery shows air or thinner tissue, less attenuating than the centre, on at
+    least some sides, and collimator blades, more attenuating, on at most a few. So the
+    periphery's less attenuating quarter departs further from the centre's level than
+    its most attenuating quarter: its upper quartile in a frame with bone dark, its lower
+    one in an inverted frame."""
+    h, w = image.shape
+    u, v = np.arange(0, w, 2)[None, :], np.arange(0, h, 2)[:, None]
+    if radius is not None:
+        rel = np.hypot(u - centre[0], v - centre[1]) / radius
+    else:
+        rel = np.maximum(np.abs(u - centre[0]) / (w / 2.0), np.abs(v - centre[1]) / (h / 2.0))
+    sub, inside = image[::2, ::2], lit[::2, ::2]
+    core, ring = sub[inside & (rel < 0.3)], sub[inside & (rel > 0.8)]
+    if len(core) < 50 or len(ring) < 50:
+        return 0.0
+    lo, hi = np.percentile(sub[inside], [1, 99])
+    if hi <= lo:
+        return 0.0
+    level = float(np.median(core))
+    q25, q75 = np.percentile(ring, [25, 75])
+    return float(((q75 - level) - (level - q25)) / (hi - lo))
+
+
+def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
+                  ) -> tuple[np.ndarray, float | None, float, int]:
+    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal.
+
+    ``scene`` "knee" reads an automatic polarity from the content of a knee frame first;
+    "phantom" (a calibration plate filling the field, no leg) from the intensifier's
+    no-signal level first."""
+    data = np.asarray(image)
+    if data.ndim != 2 or min(data.shape) < 16:
+        raise FieldError(f"expected a 2-D grey-scale frame, got shape {data.shape}")
+    data = data.astype(np.float32)
+    if not np.all(np.isfinite(data)):
+        raise FieldError("the frame has non-finite pixel values")
+    h, w = data.shape
+    lo, hi = (float(x) for x in np.percentile(data[::2, ::2], [0.1, 99.9]))
+    span = hi - lo
+    if span <= 0:
+        raise FieldError("the frame is uniform (no contrast): nothing was imaged")
+    circle = _circular_field(data, span)
+    if circle is not None:
+        centre, radius, outside = circle
+        u, v = np.arange(w)[None, :], np.arange(h)[:, None]
+        lit = np.hypot(u - centre[0], v - centre[1]) < radius - 4.0
+    else:
+        centre, radius, outside = np.array([(w - 1) / 2.0, (h - 1) / 2.0]), None, None
+        lit = np.ones_like(data, bool)
+    if polarity in ("dark", "bright"):
+        sign = 1 if polarity == "dark" else -1
+    else:
+        sign = None
+        if scene == "phantom" and outside is not None:
+            sign = 1 if float(np.median(data[lit])) >= outside else -1
+        rim = _periphery_asymmetry(data, lit, centre, radius) if sign is None else 0.0
+        if sign is None:
+            sign = int(np.sign(rim)) if abs(rim) >= _RIM_DECISIVE else polarity_sign(data, lit)
+        if sign is None and abs(rim) >= _RIM_WEAK:
+            sign = int(np.sign(rim))
+        if sign is None and outside is not None:
+            sign = 1 if float(np.median(data[lit])) >= outside else -1
+        if sign is None:
+            raise FieldError("the polarity of the frame cannot be told (no steel stands out); "
+                             "configure it")
+    inside = data[lit]
+    level_lo, level_hi = float(inside.min()), float(inside.max())
+    if outside is not None and sign * (np.median(inside) - outside) > 0:
+        level = outside
+    else:
+        # No usable no-signal level: just beyond the most attenuating pixel of the field.
+        level = level_lo - 1.0 if sign > 0 else level_hi + 1.0
+    return np.asarray(centre, float), radius, float(level), sign
+
+
+_STROKE_MIN_PX = 12
+_STROKE_CONTRAST = 0.15  # of the frame's range: a stroke's mean step off its surroundings
+
+
+def remove_overlays(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frame with burned-in annotations filled in from around them, and their mask.
+
+    Text and graphics are written at the extreme grey level of the stored range in strokes
+    a few pixels wide; saturated air or the dark outside of a circular field are at that
+    level too, but in broad areas that an opening keeps. Strokes are filled in (Telea
+    inpainting) so that they take no part in the field, the polarity or the edges."""
+    data = np.asarray(image).astype(np.float32)
+    mask = np.zeros(data.shape, bool)
+    kernel = np.ones((7, 7), np.uint8)
+    span = float(data.max() - data.min())
+    for level in (data.max(), data.min()):
+        at = (data == level).astype(np.uint8)
+        thin = (at > 0) & (cv2.morphologyEx(at, cv2.MORPH_OPEN, kernel) == 0)
+        # A stroke is a few dozen pixels at least (single pixels at the extreme are noise),
+        # and stands sharply off what is around it; steel saturating the detector is at the
+        # extreme too, but its surroundings (the rest of its shadow) are nearly as extreme.
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
+        around = cv2.dilate(labels.astype(np.float32), np.ones((5, 5), np.uint8)).astype(np.int32)
+        ring = (around > 0) & (labels == 0)
+        contrast = np.bincount(around[ring], weights=np.abs(data[ring] - level), minlength=count).astype(float)
+        contrast /= np.maximum(np.bincount(around[ring], minlength=count), 1) * max(span, 1e-9)
+        stroke = (stats[:, cv2.CC_STAT_AREA] >= _STROKE_MIN_PX) & (contrast > _STROKE_CONTRAST)
+        stroke[0] = False
+        mask |= stroke[labels]
+    if not mask.any():
+        return data, mask
+    mask = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    return cv2.inpaint(data, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA), mask
 
 
 def attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
@@ -78,7 +280,7 @@ def attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
 
 def fill_holes(mask: np.ndarray, max_area: int | None = None) -> np.ndarray:
     """The mask with its enclosed holes (smaller than ``max_area``, if given) filled."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=4)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((~mask.astype(bool)).astype(np.uint8), connectivity=4)
     h, w = mask.shape
     x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
     fill = (x > 0) & (y > 0) & (x + stats[:, cv2.CC_STAT_WIDTH] < w) & (y + stats[:, cv2.CC_STAT_HEIGHT] < h)

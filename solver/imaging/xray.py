@@ -4,9 +4,11 @@ Physics, in the order the signal meets it:
 
 1. Beer-Lambert line integrals along every pixel ray: a soft-tissue envelope around the
    leg, tibia and fibula (a cortical shell of ``cortical_thickness_mm`` denser than the
-   cancellous interior), the two steel pins and optionally the distal femur. Each body's path
+   cancellous interior) and the two steel pins. Each body's path
    length comes from exact rasterisation of its closed mesh (``raster.path_lengths``); bone
-   and steel attenuate by their excess over the soft tissue they displace.
+   and steel attenuate by their excess over the soft tissue they displace. The operating
+   room's other bodies (femur, patella, retractors) and its detector and processing are
+   added by ``solver.imaging.operating_room`` (``extra`` bodies, ``exposure``).
 2. Focal-spot blur (Gaussian, ``focal_blur_px``) of the expected photon count, then quantum
    noise (Poisson, ``photons`` expected quanta per pixel with no object in the beam).
 3. The intensifier: its distortion (``solver.imaging.distortion``) warps the image, its
@@ -28,13 +30,14 @@ the meshes (``solver.silhouette.ContourGenerator``), in ideal and in distorted p
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 import trimesh
 
 from ..camera import Camera
-from ..geometry import Pose, rotation_about
+from ..geometry import Pose
 from ..plan import Plan
 from ..silhouette import ContourGenerator
 from .distortion import Distortion
@@ -70,8 +73,6 @@ class XRayParams:
         (150.0, 62.0, 58.0), (40.0, 58.0, 50.0), (-60.0, 55.0, 50.0), (-180.0, 52.0, 48.0),
         (-300.0, 36.0, 32.0), (-400.0, 30.0, 28.0))
     envelope_centre_mm: tuple[float, float] = (0.0, -14.0)
-    include_femur: bool = False
-    femur_flexion_deg: float = 0.0
     photons: float = 4000.0
     focal_blur_px: float = 0.6
     detector_blur_px: float = 0.7
@@ -144,30 +145,13 @@ def _envelope(params: XRayParams) -> trimesh.Trimesh:
     return _closed(mesh, "soft-tissue envelope")
 
 
-def _femur(params: XRayParams) -> trimesh.Trimesh:
-    """A parametric distal femur (shaft and two condyles) resting on the plateau (anatomical frame)."""
-    shaft = trimesh.creation.cylinder(radius=14.0, height=200.0, sections=48)
-    shaft.apply_translation([0.0, 0.0, 140.0])
-    parts = [shaft]
-    for x in (-20.0, 20.0):
-        condyle = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-        condyle.apply_scale([17.0, 26.0, 22.0])
-        condyle.apply_translation([x, -4.0, 27.0])
-        parts.append(condyle)
-    femur = trimesh.boolean.union(parts, engine="manifold")
-    hinge = np.array([0.0, -4.0, 27.0])
-    rotation = rotation_about([1.0, 0.0, 0.0], -np.radians(params.femur_flexion_deg))
-    femur.vertices = (femur.vertices - hinge) @ rotation.T + hinge
-    return _closed(femur, "femur")
-
-
 @dataclass
 class XRayScene:
     """The per-plan meshes of a radiograph, built once (offset surfaces, envelope, contours)."""
 
     params: XRayParams
     bone: list[Body]  # tibia frame
-    anatomy: list[Body]  # anatomical frame (envelope, femur)
+    anatomy: list[Body]  # anatomical frame (the soft-tissue envelope)
     pin: Body  # pin frame
     T_tibia_anat: Pose
     bone_outline: ContourGenerator
@@ -186,9 +170,6 @@ class XRayScene:
                                  params.mu_cancellous_per_mm - params.mu_cortical_per_mm))
         envelope = _envelope(params)
         anatomy = [Body(envelope.vertices, envelope.faces, soft, smooth=True)]
-        if params.include_femur:
-            femur = _femur(params)
-            anatomy.append(Body(femur.vertices, femur.faces, params.mu_cortical_per_mm - soft))
         pin = _closed(plan.pin_mesh, "pin")
         return XRayScene(
             params, bone, anatomy, Body(pin.vertices, pin.faces, params.mu_steel_per_mm - soft),
@@ -275,23 +256,32 @@ def _solid_interior(generator: ContourGenerator, T_cam_body: Pose, camera: Camer
     return cv2.erode(footprint, kernel)
 
 
+Exposure = Callable[[np.ndarray, np.ndarray, Camera, XRayParams, Distortion, np.random.Generator],
+                    np.ndarray]
+
+
 def render_radiograph(plan: Plan, T_cam_tibia: Pose, T_tibia_pins: list[Pose] | tuple[Pose, ...],
                       camera: Camera, params: XRayParams = XRayParams(),
                       rng: np.random.Generator | None = None,
-                      scene: XRayScene | None = None) -> Radiograph:
+                      scene: XRayScene | None = None,
+                      extra: Sequence[tuple[Body, Pose]] = (),
+                      exposure: Exposure = expose) -> Radiograph:
     """Render one C-arm frame of the plan's leg with its pins, and its ground-truth outlines.
 
     ``scene`` (from :meth:`XRayScene.from_plan`) saves rebuilding the meshes for every frame.
+    ``extra`` bodies (with their ``T_cam_body``) are in the beam but not measured (the
+    operating room's femur, retractors); ``exposure`` turns the line integral into the
+    stored frame (:func:`expose`, or the operating room's detector and processing).
     """
     rng = rng if rng is not None else np.random.default_rng()
     scene = scene if scene is not None else XRayScene.from_plan(plan, params)
     distortion = params.distortion or default_distortion(camera)
     T_cam_anat = T_cam_tibia @ scene.T_tibia_anat
     bodies = [(b, T_cam_tibia) for b in scene.bone] + [(b, T_cam_anat) for b in scene.anatomy]
-    bodies += [(scene.pin, T_cam_tibia @ T) for T in T_tibia_pins]
+    bodies += [(scene.pin, T_cam_tibia @ T) for T in T_tibia_pins] + list(extra)
     origin, width, height = _canvas(camera, distortion)
     line_integral = render_bodies(bodies, camera, origin, width, height)
-    image = expose(line_integral, origin, camera, params, distortion, rng)
+    image = exposure(line_integral, origin, camera, params, distortion, rng)
 
     outlines = {"bone": (scene.bone_outline, T_cam_tibia)}
     outlines.update({f"pin{i + 1}": (scene.pin_outline, T_cam_tibia @ T)

@@ -1,0 +1,155 @@
+"""Operating-room frames: extraction never fails but by name, the simulator's nuisances,
+and a CI-sized realism study (no wrong angle; refusals say why)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from service.bench_realism import SHARED_DATA, realism_case
+from service.cli import main
+from solver.imaging.contours import UNFORESEEN_PREFIX, ContourError, extract_contours
+from solver.imaging.field import field_of_view, remove_overlays
+from solver.imaging.operating_room import (
+    NUISANCES,
+    OperatingRoom,
+    render_room,
+    room_bodies,
+    room_scene,
+    view_angles,
+)
+from solver.imaging.xray import XRayParams, XRayScene, render_radiograph
+from solver.simulate import SimulationConfig, default_camera, simulate_case
+
+from frame_variants import TRANSFORMS, made_up_frames  # isort: skip
+
+MESHES = SHARED_DATA / "knee-nuisance"
+
+
+@pytest.fixture(scope="module")
+def scene(phantom_plan):
+    return XRayScene.from_plan(phantom_plan)
+
+
+@pytest.fixture(scope="module")
+def clean_frames(phantom_plan, scene):
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
+    return [render_radiograph(phantom_plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(),
+                              np.random.default_rng(k), scene).image
+            for k, T in enumerate(case.truth_T_cam_tibia)]
+
+
+def _room_frames(plan, scene, room: OperatingRoom, seed: int):
+    draw = room.draw(seed)
+    case = simulate_case(plan, SimulationConfig(seed=seed, view_angles_deg=view_angles(draw, (-30.0, 30.0))))
+    rng = np.random.default_rng(seed)
+    bodies = room_bodies(plan, draw)
+    scene = room_scene(scene, draw)
+    return draw, [render_room(plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(), draw, rng,
+                              scene, bodies) for T in case.truth_T_cam_tibia]
+
+
+def test_extraction_raises_only_its_own_named_error_whatever_the_frame(clean_frames):
+    """Processed, inverted, cropped, flat-panel-like, 8-16 bit, signed, float, tiny, uniform,
+    saturated, noise: each frame is either extracted or refused with a ContourError that
+    names the cause (never the catch-all of an unforeseen failure)."""
+    rng = np.random.default_rng(0)
+    frames = [(f"{name} of view 0", transform(clean_frames[0], rng)) for name, transform in TRANSFORMS.items()]
+    frames += list(made_up_frames(rng))
+    refused = {}
+    for name, frame in frames:
+        try:
+            extract_contours(frame)
+        except ContourError as exc:
+            assert not str(exc).startswith(UNFORESEEN_PREFIX), f"{name}: {exc}"
+            refused[name] = str(exc)
+    assert "uniform" in refused["uniform"]
+    assert "non-finite" in refused["nan"]
+    assert "64 x 64" in refused["colour"]
+    # Every transform of a real frame that keeps the knee in view is extracted.
+    for name in ("as rendered", "inverted", "8-bit window", "16-bit", "log response", "log inverted",
+                 "unsharp masked", "gamma", "flat panel", "flat panel inverted", "shifted signed", "float"):
+        assert f"{name} of view 0" not in refused, refused.get(f"{name} of view 0")
+
+
+def test_polarity_comes_from_the_content_of_flat_panel_and_processed_frames(clean_frames):
+    T = TRANSFORMS
+
+    rng = np.random.default_rng(1)
+    for name, expected in (("flat panel", 1), ("flat panel inverted", -1), ("log inverted", -1),
+                           ("unsharp masked", 1)):
+        _, radius, _, sign = field_of_view(T[name](clean_frames[0], rng), "auto")
+        assert sign == expected, name
+        assert (radius is None) == name.startswith("flat panel"), name
+
+
+def test_each_nuisance_is_a_seedable_option_and_femur_flexion_swings_backwards(phantom_plan):
+    assert set(OperatingRoom.everything().names) == set(NUISANCES)
+    with pytest.raises(ValueError, match="unknown nuisance"):
+        OperatingRoom.only("fog")
+    room = OperatingRoom.only("femur", MESHES)
+    a, b = room.draw(5), room.draw(5)
+    assert a.flexion_deg == b.flexion_deg and 70.0 <= a.flexion_deg <= 110.0
+    (name, femur), = room_bodies(phantom_plan, a)
+    assert name == "femur"
+    # Flexed, the femur's shaft runs from the knee towards the back (-y), not the front.
+    v = femur.vertices
+    far = v[np.argsort(np.linalg.norm(v, axis=1))[-50:]].mean(axis=0)
+    assert far[1] < -80.0
+    assert far[2] < 120.0
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_operating_room_frames_carry_their_nuisances_and_hidden_truth(phantom_plan, scene):
+    draw, frames = _room_frames(phantom_plan, scene, OperatingRoom.everything(MESHES), 3)
+    frame = frames[0]
+    assert frame.radiograph.camera.fov_radius_px is None  # a flat panel
+    assert frame.radiograph.image.max() <= (1 << draw.processing["bits"]) - 1
+    assert {"femur", "patella", "retractor"} <= set(frame.foreign)
+    assert 0 < frame.hidden["bone"].sum() < len(frame.hidden["bone"])
+    cleaned, strokes = remove_overlays(frame.radiograph.image)
+    assert strokes.sum() > 500  # the burned-in text
+
+
+@pytest.mark.parametrize("scene_name, seeds", [("idealised", (0,)), ("flat_panel", (0,)),
+                                               ("retractors", (1,)), ("operating-room", (0, 1))])
+def test_ci_realism_cases_are_measured_right_or_refused_with_a_reason(phantom_plan, scene_name, seeds):
+    """A few cases per scene: never a wrong angle, and every refusal names its cause."""
+    for seed in seeds:
+        row = realism_case(("phantom", scene_name, seed, (1,), str(SHARED_DATA)))
+        result = row["levels"][1]
+        assert result["status"] in ("success", "refused"), result
+        if result["status"] == "refused":
+            assert len(result["reason"]) > 20 and "Error" not in result["reason"]
+        if scene_name == "idealised":
+            assert result["status"] == "success"
+
+
+def test_bench_realism_writes_results_and_montage(tmp_path):
+    out = tmp_path / "realism"
+    assert main(["bench", "realism", "--cases", "1", "--levels", "1", "--models", "phantom",
+                 "--scenes", "idealised,shutters", "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert [e["scene"] for e in doc["summary"]] == ["idealised", "shutters"]
+    assert "L1 success" in (out / "results.md").read_text()
+    assert (out / "montage.png").stat().st_size > 10_000
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_simulate_writes_operating_room_frames_with_truth_and_the_patient_given(tmp_path):
+    import pydicom
+
+    out = tmp_path / "case"
+    assert main(["simulate", "--out", str(out), "--images", "--scene", "operating-room", "--seed", "4",
+                 "--patient-id", "OR-17", "--patient-name", "ROE^RICHARD"]) == 0
+    truth = json.loads((out / "truth_silhouettes.json").read_text())
+    assert set(truth["nuisances"]) == set(NUISANCES)
+    assert all("hidden" in view for view in truth["views"])
+    ds = pydicom.dcmread(out / "frames" / "view1.dcm")
+    assert ds.PatientID == "OR-17" and str(ds.PatientName) == "ROE^RICHARD"
+    assert json.loads((out / "plan" / "plan.json").read_text())["patient_id"] == "OR-17"
+    calibration = json.loads((out / "calibration.json").read_text())
+    assert "flat-panel" in json.dumps(calibration)
+    assert main(["simulate", "--out", str(tmp_path / "x"), "--femur"]) == 2  # frames are needed

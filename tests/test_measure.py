@@ -1,0 +1,63 @@
+"""``slamtka measure``: the service's pipeline offline on DICOM files, and its refusals."""
+
+from __future__ import annotations
+
+import json
+
+import pydicom
+import pytest
+
+from service.cli import main
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("measure") / "case"
+    assert main(["simulate", "--out", str(folder), "--images", "--seed", "2", "--patient-id", "PAT77",
+                 "--patient-name", "DOE^JANE"]) == 0
+    return folder
+
+
+def _args(case, out, *frames, plan=None, calibration=None):
+    frames = frames or (case / "frames" / "view1.dcm", case / "frames" / "view2.dcm")
+    return ["measure", *map(str, frames), "--plan", str(plan or case / "plan"),
+            "--calibration", str(calibration or case / "calibration.json"), "--out", str(out)]
+
+
+def test_measure_writes_the_services_results_offline(case, tmp_path):
+    ds = pydicom.dcmread(case / "frames" / "view1.dcm")
+    assert ds.PatientID == "PAT77" and str(ds.PatientName) == "DOE^JANE"
+    assert main(_args(case, tmp_path / "out")) == 0
+    (result,) = (tmp_path / "out").glob("case-*/*/result.json")
+    doc = json.loads(result.read_text())
+    truth = json.loads((case / "ground_truth.json").read_text())
+    assert doc["status"] == "measured" and doc["case"]["patient_id"] == "PAT77"
+    assert abs(doc["angles"]["ctr_deg"] - truth["ctr_deg"]) < 1.0
+    assert abs(doc["angles"]["str_deg"] - truth["str_deg"]) < 1.0
+    names = {p.name for p in result.parent.iterdir()}
+    assert {"sr.dcm", "sc-view1.dcm", "sc-view2.dcm", "recording.rrd"} <= names
+
+
+def test_measure_refuses_bad_input_in_one_line_naming_the_file(case, tmp_path, capsys):
+    not_dicom = tmp_path / "notes.dcm"
+    not_dicom.write_text("not an image")
+    other = tmp_path / "other.dcm"
+    ds = pydicom.dcmread(case / "frames" / "view2.dcm")
+    ds.PatientID = "SOMEONE-ELSE"
+    ds.save_as(other)
+    wrong_calibration = tmp_path / "calibration.json"
+    doc = json.loads((case / "calibration.json").read_text())
+    doc["camera"]["width"] = 512
+    wrong_calibration.write_text(json.dumps(doc))
+    view1 = case / "frames" / "view1.dcm"
+    cases = [
+        (_args(case, tmp_path / "a", view1, not_dicom), f"{not_dicom}: not a DICOM file"),
+        (_args(case, tmp_path / "b", view1, other), f"{other}: Patient ID 'SOMEONE-ELSE'"),
+        (_args(case, tmp_path / "c", plan=tmp_path / "no-plan"), f"{tmp_path / 'no-plan'}: no such plan"),
+        (_args(case, tmp_path / "d", calibration=wrong_calibration), str(wrong_calibration)),
+    ]
+    for argv, message in cases:
+        capsys.readouterr()
+        assert main(argv) == 2, message
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and message in err, err
