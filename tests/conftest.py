@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from solver.imaging.xray import XRayParams, XRayScene, render_radiograph
 from solver.plan import Plan
+from solver.simulate import SimulationConfig, default_camera, simulate_case
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "knee-smith2019"
 REAL_LANDMARKS = Path(__file__).parent / "data" / "knee-smith2019-landmarks.json"
@@ -18,6 +21,20 @@ def phantom_plan() -> Plan:
     plan.bone_model()
     plan.pin_model()
     return plan
+
+
+@pytest.fixture(scope="session")
+def scene(phantom_plan):
+    return XRayScene.from_plan(phantom_plan)
+
+
+@pytest.fixture(scope="session")
+def radiographs(phantom_plan, scene):
+    """The phantom case of seed 2 and its idealised radiographs, one per view."""
+    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
+    return case, [render_radiograph(phantom_plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(),
+                                    np.random.default_rng(k), scene)
+                  for k, T in enumerate(case.truth_T_cam_tibia)]
 
 
 @pytest.fixture(scope="session")

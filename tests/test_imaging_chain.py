@@ -28,21 +28,8 @@ from solver.imaging.contours import ContourConfig, ContourError, extract_contour
 from solver.imaging.distortion import Distortion
 from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
 from solver.imaging.raster import path_lengths
-from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from solver.imaging.xray import XRayParams, default_distortion, render_radiograph
 from solver.simulate import SimulationConfig, default_camera, simulate_case
-
-
-@pytest.fixture(scope="module")
-def scene(phantom_plan):
-    return XRayScene.from_plan(phantom_plan)
-
-
-@pytest.fixture(scope="module")
-def radiographs(phantom_plan, scene):
-    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
-    return case, [render_radiograph(phantom_plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(),
-                                    np.random.default_rng(k), scene)
-                  for k, T in enumerate(case.truth_T_cam_tibia)]
 
 
 def test_path_lengths_of_a_sphere_match_the_chord_formula():

@@ -20,7 +20,7 @@ from solver.imaging.operating_room import (
     room_scene,
     view_angles,
 )
-from solver.imaging.xray import XRayParams, XRayScene, render_radiograph
+from solver.imaging.xray import XRayParams
 from solver.simulate import SimulationConfig, default_camera, simulate_case
 
 from frame_variants import TRANSFORMS, made_up_frames  # isort: skip
@@ -29,16 +29,8 @@ MESHES = SHARED_DATA / "knee-nuisance"
 
 
 @pytest.fixture(scope="module")
-def scene(phantom_plan):
-    return XRayScene.from_plan(phantom_plan)
-
-
-@pytest.fixture(scope="module")
-def clean_frames(phantom_plan, scene):
-    case = simulate_case(phantom_plan, SimulationConfig(seed=2))
-    return [render_radiograph(phantom_plan, T, case.truth_T_tibia_pin, default_camera(), XRayParams(),
-                              np.random.default_rng(k), scene).image
-            for k, T in enumerate(case.truth_T_cam_tibia)]
+def clean_frames(radiographs):
+    return [r.image for r in radiographs[1]]
 
 
 def _room_frames(plan, scene, room: OperatingRoom, seed: int):
