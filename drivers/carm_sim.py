@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from solver.jsonfile import read_json_object
+from slamtka.solver.jsonfile import read_json_object
 
-from .kinematics import JointReading
-from .protocol import (
+from slamtka.drivers.kinematics import JointReading
+from slamtka.drivers.protocol import (
     PROTOCOL_VERSION, AxisInfo, DeviceIdentity, Frame, FrameParser, MessageType, ProtocolError,
     ResultCode, Status, StatusFlags, decode_stream_start, encode_frame, encode_identity,
     encode_readings, encode_result, encode_status,

@@ -32,8 +32,8 @@ from typing import Callable, Mapping
 import numpy as np
 import serial
 
-from .kinematics import AXIS_UNITS, JOINT_FIELD, JointReading, config_number
-from .protocol import (
+from slamtka.drivers.kinematics import AXIS_UNITS, JOINT_FIELD, JointReading, config_number
+from slamtka.drivers.protocol import (
     INVALID_FLAGS, PROTOCOL_VERSION, DeviceIdentity, Frame, FrameParser, MessageType, ParserStats,
     ProtocolError, ResultCode, Status, StatusFlags, decode_identity, decode_reading, decode_result,
     decode_status, encode_frame, encode_stream_start,

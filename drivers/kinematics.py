@@ -32,8 +32,8 @@ import numbers
 
 import numpy as np
 
-from solver.anatomy import Landmarks
-from solver.geometry import Pose, rotation_about, so3_log
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.geometry import Pose, rotation_about, so3_log
 
 __all__ = [
     "AXIS_UNITS", "JointReading", "ChainJoint", "CArmKinematics", "PatientSetup", "RelativePose",

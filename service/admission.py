@@ -23,7 +23,7 @@ import threading
 from collections import Counter
 from dataclasses import dataclass
 
-from .config import DicomConfig, normalise_fingerprint
+from slamtka.service.config import DicomConfig, normalise_fingerprint
 
 __all__ = ["Admission", "Ticket", "HEALTH_ASSOCIATIONS"]
 

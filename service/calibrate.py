@@ -20,12 +20,12 @@ import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from solver.imaging.calibration import CalibrationError, CalibrationImage, CalibrationOptions, calibrate
-from solver.imaging.phantom import PhantomSpec
+from slamtka.solver.imaging.calibration import CalibrationError, CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.plate import PhantomSpec
 
-from .calibrations import detector_field_mm, device_identity
-from .frames import decode_frame
-from .spool import write_json_atomic
+from slamtka.service.calibrations import detector_field_mm, device_identity
+from slamtka.service.frames import decode_frame
+from slamtka.service.atomic_files import write_json_atomic
 
 __all__ = ["add_calibrate_parser", "cmd_calibrate", "read_phantom_image", "format_report",
            "IMAGE_SUFFIXES"]

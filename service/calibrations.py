@@ -22,9 +22,9 @@ from pathlib import Path
 from pydicom.dataset import Dataset
 from pydicom.multival import MultiValue
 
-from solver.imaging.calibration import Calibration, CalibrationError, assign_device, load_calibration
+from slamtka.solver.imaging.calibration import Calibration, CalibrationError, assign_device, load_calibration
 
-from .spool import write_json_atomic
+from slamtka.service.atomic_files import write_json_atomic
 
 __all__ = ["DEVICE_KEYS", "CalibrationSet", "CalibrationStore", "device_identity",
            "detector_field_mm", "add_calibration_parser"]
@@ -205,7 +205,7 @@ def choose_for_run(selected: list[tuple[Calibration | None, str | None]]) -> Cal
 # -- slamtka calibration list | show | install ---------------------------------------------
 
 def _store(args: argparse.Namespace):
-    from .config import load_config
+    from slamtka.service.config import load_config
 
     config = load_config(args.config)
     return config, CalibrationStore(config.data_dir / "calibrations")

@@ -14,9 +14,9 @@ import getpass
 import json
 from pathlib import Path
 
-from .config import load_config
-from .pinsets import CasePinSets, PinSetStore
-from .workflow import write_request
+from slamtka.service.config import load_config
+from slamtka.service.pinsets import CasePinSets, PinSetStore
+from slamtka.service.workflow import write_request
 
 __all__ = ["add_case_parser"]
 

@@ -22,9 +22,9 @@ from datetime import datetime
 
 import numpy as np
 
-from .frames import FrameError, decode_frame
-from .poses import ViewGeometry, ViewPairing, view_separation_deg
-from .spool import Spool, SpoolEntry
+from slamtka.service.frames import FrameError, decode_frame
+from slamtka.service.poses import ViewGeometry, ViewPairing, view_separation_deg
+from slamtka.service.spool import Spool, SpoolEntry
 
 __all__ = ["View", "Case", "CaseAssembler", "run_id_of", "case_id_of"]
 

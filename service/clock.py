@@ -21,8 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from drivers.encoder_link import EncoderLink, EncoderReading
-from drivers.kinematics import AngleCheck, CArmKinematics, PatientSetup, check_dicom_angles
+from slamtka.drivers.encoder_link import EncoderLink, EncoderReading
+from slamtka.drivers.kinematics import AngleCheck, CArmKinematics, PatientSetup, check_dicom_angles
 
 __all__ = ["ClockCheck", "review_pairing"]
 

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
-from solver.anatomy import Landmarks
 
 __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
            "CallerBinding", "load_config", "config_from_dict", "validate_ae_title",
@@ -232,8 +231,9 @@ class CarmConfig:
     setup: dict = field(default_factory=dict)
 
     def check(self, where: str) -> None:
-        from drivers.encoder_link import LinkConfig
-        from drivers.kinematics import CArmKinematics, PatientSetup
+        from slamtka.drivers.encoder_link import LinkConfig
+        from slamtka.drivers.kinematics import CArmKinematics, PatientSetup
+        from slamtka.solver.anatomy import Landmarks
 
         if self.calibration_match not in ("device_serial_number", "station_name", "calling_ae_title"):
             raise ConfigError(f"{where}.calibration_match: {self.calibration_match!r} must be "

@@ -18,7 +18,7 @@ import highdicom as hd
 import numpy as np
 from pydicom.dataset import Dataset
 
-from .headers import image_laterality, stamp_dates
+from slamtka.service.headers import image_laterality, stamp_dates
 
 __all__ = ["ScOverlay", "render_overlay", "wrap_text", "build_sc", "patient_orientation", "SC_SERIES_NUMBER"]
 

@@ -37,7 +37,7 @@ from pydicom.sr.codedict import codes
 from pydicom.sr.coding import Code
 from pydicom.uid import generate_uid
 
-from .headers import stamp_dates
+from slamtka.service.headers import stamp_dates
 
 __all__ = ["SrGeometry", "build_sr", "tibia_frame_of_reference_uid", "CODES", "SR_SERIES_NUMBER"]
 

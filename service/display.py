@@ -73,8 +73,8 @@ def build_status_objects(header: Dataset, pixels: np.ndarray | None, status: Sta
                          when: datetime, institution: str = "") -> tuple[Dataset, Dataset]:
     """The status SR and SC of one situation, in the study of ``header`` (sanitised);
     ``uid_for(what)`` names every UID, ``pixels`` is the view to draw on (blank when None)."""
-    from .dicom_sc import ScOverlay, build_sc, render_overlay  # highdicom, OpenCV: not for
-    from .dicom_sr import build_sr  # `slamtka status`, which imports this module's neighbours
+    from slamtka.service.dicom_sc import ScOverlay, build_sc, render_overlay  # highdicom, OpenCV: not for
+    from slamtka.service.dicom_sr import build_sr  # `slamtka status`, which imports this module's neighbours
 
     doc = {"status": "not_measured", "reason": status.message, "inputs": None,
            "software": {"version": version}, "case": {"laterality": laterality}}

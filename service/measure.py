@@ -23,18 +23,18 @@ from pathlib import Path
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from drivers.encoder_link import EncoderReading
-from drivers.kinematics import CArmKinematics, JointReading
-from solver.imaging.calibration import CalibrationError, load_calibration
-from solver.jsonfile import read_json_object
-from solver.plan import Plan
+from slamtka.drivers.encoder_link import EncoderReading
+from slamtka.drivers.kinematics import CArmKinematics, JointReading
+from slamtka.solver.imaging.calibration import CalibrationError, load_calibration
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.plan import Plan
 
-from .cases import CaseAssembler
-from .config import CarmConfig, PipelineConfig
-from .frames import FrameError, decode_frame
-from .plans import PlanStore
-from .poses import ViewGeometry
-from .spool import Spool
+from slamtka.service.cases import CaseAssembler
+from slamtka.service.config import CarmConfig, PipelineConfig
+from slamtka.service.frames import FrameError, decode_frame
+from slamtka.service.plans import PlanStore
+from slamtka.service.poses import ViewGeometry
+from slamtka.service.spool import Spool
 
 __all__ = ["add_measure_parser", "run_measure", "MeasureError"]
 
@@ -136,7 +136,7 @@ def run_measure(args: argparse.Namespace) -> int:
     carm, pipeline_config = CarmConfig(), PipelineConfig()
     geometry = ViewGeometry(CArmKinematics.from_config(carm.kinematics), carm.setup, link,
                             _READING_MATCH_S, carm.angle_check_deg)
-    from .pipeline import Pipeline  # loads rerun, highdicom and the imaging chain
+    from slamtka.service.pipeline import Pipeline  # loads rerun, highdicom and the imaging chain
 
     args.out.mkdir(parents=True, exist_ok=True)
     spool = Spool(args.out / ".spool")

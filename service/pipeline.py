@@ -29,27 +29,28 @@ import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
-from solver.geometry import Pose
-from solver.imaging.contours import ContourError, extract_contours, load_manual_contours
-from solver.measurement import pin_axis_points
-from solver.observations import LABELS, ViewObservation
-from solver.plan import Plan
-from solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
+from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
+from slamtka.solver.measurement import pin_axis_points
+from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
 
-from .calibrations import CalibrationSet, choose_for_run
-from .cases import Case, View, run_id_of
-from .dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
-from .dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
-from .display import advice, change_line
-from .frames import Frame, decode_frame, encode_frame
-from .headers import sanitised_header
-from .pinsets import NO_CONTOURS, pin_disagreement_px
-from .plans import PlanStore
-from .poses import ViewGeometry, planned_pins
-from .recording import CaseRecorder
-from .results import build_result, validate_result
-from .sender import OutgoingObject
-from .spool import Spool, remove_partial, write_atomic, write_json_atomic
+from slamtka.service.calibrations import CalibrationSet, choose_for_run
+from slamtka.service.cases import Case, View, run_id_of
+from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
+from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from slamtka.service.display import advice, change_line
+from slamtka.service.frames import Frame, decode_frame, encode_frame
+from slamtka.service.headers import sanitised_header
+from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
+from slamtka.service.plans import PlanStore
+from slamtka.service.poses import ViewGeometry, planned_pins
+from slamtka.service.recording import CaseRecorder
+from slamtka.service.results import build_result, validate_result
+from slamtka.service.sender import OutgoingObject
+from slamtka.service.atomic_files import remove_partial, write_atomic, write_json_atomic
+from slamtka.service.spool import Spool
 
 __all__ = ["Pipeline", "RunOutcome", "plane_polygon", "result_uid", "PLANE_PATCH_HALF_MM"]
 
@@ -418,7 +419,7 @@ class Pipeline:
     def _solver_inputs(self, plan: Plan, observations: list[ViewObservation],
                        initial: InitialGuess) -> dict:
         """Exactly what the solver was given (float64 JSON), for ``slamtka replay --resolve``."""
-        from solver.sdf import mesh_digest
+        from slamtka.solver.sdf import mesh_digest
 
         return {"camera": self.calibration.camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()

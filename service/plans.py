@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from solver.anatomy import Landmarks
-from solver.jsonfile import read_json_object
-from solver.meshes import load_mesh
-from solver.pin import PinSpec, build_pin
-from solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target, check_layout
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.meshes import load_mesh
+from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target, check_layout
 
 __all__ = ["PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
            "LATERALITY_TO_SIDE"]
@@ -242,7 +242,7 @@ class PlanStore:
 def _store(args: argparse.Namespace) -> PlanStore:
     if args.plans is not None:
         return PlanStore(args.plans)
-    from .config import load_config
+    from slamtka.service.config import load_config
 
     return PlanStore(load_config(args.config).plans)
 

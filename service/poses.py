@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.encoder_link import EncoderLink
-from drivers.kinematics import (
+from slamtka.drivers.encoder_link import EncoderLink
+from slamtka.drivers.kinematics import (
     AXIS_UNITS,
     CArmKinematics,
     JointReading,
@@ -31,13 +31,13 @@ from drivers.kinematics import (
     check_dicom_angles,
     initial_view_poses,
 )
-from solver.anatomy import Landmarks, plane_normal_from_angles
-from solver.block import block_axes, bone_entry_mm, pin_pose
-from solver.geometry import Pose, look_at
-from solver.plan import Plan
+from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles
+from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
+from slamtka.solver.geometry import Pose, look_at
+from slamtka.solver.plan import Plan
 
-from .clock import review_pairing
-from .frames import Frame
+from slamtka.service.clock import review_pairing
+from slamtka.service.frames import Frame
 
 __all__ = ["beam_direction_anat", "positioner_T_anat_cam", "planned_pins",
            "view_separation_deg", "ViewGeometry", "ViewPairing", "InitialViews"]

@@ -32,11 +32,11 @@ import rerun as rr
 import rerun_bindings
 import trimesh
 
-from solver.geometry import Pose
-from solver.optimizer import IterationInfo
-from solver.plan import Plan
+from slamtka.solver.geometry import Pose
+from slamtka.solver.optimizer import IterationInfo
+from slamtka.solver.plan import Plan
 
-from .frames import Frame
+from slamtka.service.frames import Frame
 
 __all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
 

@@ -21,16 +21,16 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from solver.anatomy import Landmarks
-from solver.camera import Camera
-from solver.geometry import Pose
-from solver.jsonfile import read_json_object
-from solver.measurement import fit_resection_plane
-from solver.observations import LABELS, ViewObservation
-from solver.pin import PinSpec, build_pin
-from solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
-from solver.sdf import mesh_digest
-from solver.slam import InitialGuess, SolverConfig, solve_joint
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.measurement import fit_resection_plane
+from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
+from slamtka.solver.sdf import mesh_digest
+from slamtka.solver.slam import InitialGuess, SolverConfig, solve_joint
 
 
 __all__ = ["Recording", "read_recording", "check_recording", "resolve_recording",
@@ -66,7 +66,7 @@ class Recording:
 def read_recording(path: Path) -> Recording:
     from rerun.chunk import RrdReader  # here: keeps every other `slamtka` command quick to start
 
-    from .recording import APPLICATION_ID
+    from slamtka.service.recording import APPLICATION_ID
 
     path = Path(path)
     if not path.is_file():

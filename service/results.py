@@ -17,11 +17,11 @@ from importlib.resources import files
 
 import jsonschema
 
-from solver.anatomy import SIGN_CONVENTION
-from solver.observations import ViewObservation
-from solver.plan import Plan
-from solver.result import RESULT_FORMAT, result_document, software_version
-from solver.slam import InitialGuess, SolveOutcome
+from slamtka.solver.anatomy import SIGN_CONVENTION
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.result import RESULT_FORMAT, result_document, software_version
+from slamtka.solver.slam import InitialGuess, SolveOutcome
 
 __all__ = ["SCHEMA_VERSION", "result_schema", "validate_result", "build_result"]
 

@@ -37,13 +37,13 @@ from pynetdicom.sop_class import (
     XRayRadiofluoroscopicImageStorage,
 )
 
-from .audit import AuditLog
-from .config import DicomConfig
-from .dataset_guard import DatasetError, check_dataset_bytes
-from .frames import FrameError, decode_frame
-from .spool import Spool, SpoolEntry
-from .tls import server_ssl_context
-from .wire import GuardedServer, WireLimits
+from slamtka.service.audit import AuditLog
+from slamtka.service.config import DicomConfig
+from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
+from slamtka.service.frames import FrameError, decode_frame
+from slamtka.service.spool import Spool, SpoolEntry
+from slamtka.service.tls import server_ssl_context
+from slamtka.service.wire import GuardedServer, WireLimits
 
 __all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_instance"]
 

@@ -26,19 +26,20 @@ import threading
 from datetime import datetime, timezone
 from pathlib import Path
 
-from drivers.encoder_link import EncoderLink, LinkConfig
-from drivers.kinematics import CArmKinematics
+from slamtka.drivers.encoder_link import EncoderLink, LinkConfig
+from slamtka.drivers.kinematics import CArmKinematics
 
-from .audit import AuditLog, last_event
-from .cases import Case, CaseAssembler
-from .config import ServiceConfig, load_config
-from .plans import PlanStore
-from .poses import ViewGeometry
-from .scp import DicomReceiver
-from .sender import Sender
-from .spool import Spool, SpoolEntry, remove_partial
-from .status import Metrics, StatusBoard
-from .workflow import Workflow
+from slamtka.service.audit import AuditLog, last_event
+from slamtka.service.cases import Case, CaseAssembler
+from slamtka.service.config import ServiceConfig, load_config
+from slamtka.service.plans import PlanStore
+from slamtka.service.poses import ViewGeometry
+from slamtka.service.scp import DicomReceiver
+from slamtka.service.sender import Sender
+from slamtka.service.atomic_files import remove_partial
+from slamtka.service.spool import Spool, SpoolEntry
+from slamtka.service.status import Metrics, StatusBoard
+from slamtka.service.workflow import Workflow
 
 __all__ = ["Service", "add_serve_parser"]
 
@@ -71,8 +72,8 @@ class Service:
         self.spool = Spool(config.spool_dir)
         # Imported here, not at the top: `slamtka status` (the container's health check) and the
         # other commands then start without loading rerun, highdicom and the imaging chain.
-        from .calibrations import CalibrationSet
-        from .pipeline import Pipeline
+        from slamtka.service.calibrations import CalibrationSet
+        from slamtka.service.pipeline import Pipeline
 
         self.calibrations = CalibrationSet.load(config.data_dir / "calibrations", config.carm.calibration,
                                                 config.carm.calibration_match)

@@ -9,7 +9,7 @@ atomically and the first copy is kept (processing is idempotent by SOP Instance 
 Beside each instance the case assembler keeps a small JSON sidecar (how the frame was
 paired with the C-arm's encoders), written the same crash-safe way, so a restart re-builds
 every case exactly as it was. A crash can leave only temporary files (``.tmp-*``) behind,
-never a partial instance; :func:`remove_partial` deletes them at the next start.
+never a partial instance (:mod:`slamtka.service.atomic_files`).
 """
 
 from __future__ import annotations
@@ -18,75 +18,19 @@ import hashlib
 import io
 import json
 import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import pydicom
 from pydicom.dataset import Dataset
 
-__all__ = ["Spool", "SpoolEntry", "entry_id", "write_atomic", "write_json_atomic", "remove_partial",
-           "TEMP_PREFIX"]
+from slamtka.service.atomic_files import write_atomic, write_json_atomic
 
-TEMP_PREFIX = ".tmp-"
-
+__all__ = ["Spool", "SpoolEntry", "entry_id"]
 
 def entry_id(sop_instance_uid: str) -> str:
     """File stem for an instance: a digest, so no received value ever becomes a path."""
     return hashlib.sha256(sop_instance_uid.encode("ascii", "replace")).hexdigest()[:40]
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, data: bytes, replace: bool = True) -> bool:
-    """Write ``data`` to ``path`` via a fsynced temporary file in the same folder.
-
-    With ``replace=False`` an existing ``path`` is kept and False is returned.
-    """
-    path = Path(path)
-    tmp = path.parent / f"{TEMP_PREFIX}{uuid.uuid4().hex}"
-    try:  # a failed write (disk full) leaves nothing behind
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        if replace:
-            os.replace(tmp, path)
-        else:
-            try:
-                os.link(tmp, path)
-            except FileExistsError:
-                return False
-            finally:
-                os.unlink(tmp)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-    return True
-
-
-def remove_partial(folder: Path) -> int:
-    """Delete the temporary files a killed writer left in ``folder``; how many there were.
-
-    Only safe while nothing writes into ``folder`` (at start-up, before the port opens).
-    """
-    leftovers = list(Path(folder).glob(f"{TEMP_PREFIX}*"))
-    for path in leftovers:
-        path.unlink(missing_ok=True)
-    if leftovers:
-        _fsync_dir(Path(folder))
-    return len(leftovers)
-
-
-def write_json_atomic(path: Path, doc: dict) -> None:
-    write_atomic(path, (json.dumps(doc, indent=2, default=str) + "\n").encode())
 
 
 @dataclass(frozen=True)

@@ -19,14 +19,11 @@ from collections import Counter
 from datetime import datetime, timezone
 from pathlib import Path
 
-from pynetdicom import AE
-from pynetdicom.sop_class import Verification
+from slamtka.solver.jsonfile import read_json_object
 
-from solver.jsonfile import read_json_object
-
-from .config import ServiceConfig, load_config
-from .spool import write_json_atomic
-from .tls import client_ssl_context
+from slamtka.service.config import ServiceConfig, load_config
+from slamtka.service.atomic_files import write_json_atomic
+from slamtka.service.tls import client_ssl_context
 
 log = logging.getLogger("slamtka.status")
 
@@ -140,6 +137,9 @@ def prometheus_text(status: dict) -> str:
 
 def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0) -> tuple[bool, str]:
     """C-ECHO to the service under the health-check AE title: (answered, message)."""
+    from pynetdicom import AE  # the DICOM stack only when an echo is asked for (start-up time)
+    from pynetdicom.sop_class import Verification
+
     ae = AE(ae_title=config.dicom.health_ae_title)
     ae.add_requested_context(Verification)
     for name in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):

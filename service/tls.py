@@ -14,7 +14,7 @@ import hashlib
 import ssl
 from pathlib import Path
 
-from .config import ConfigError, TlsConfig
+from slamtka.service.config import ConfigError, TlsConfig
 
 __all__ = ["server_ssl_context", "client_ssl_context", "certificate_sha256", "fingerprint",
            "ClientContext", "PinMismatch"]

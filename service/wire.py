@@ -41,8 +41,8 @@ from typing import Callable
 from pydicom.uid import UID
 from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
 
-from .admission import Admission, Ticket
-from .tls import fingerprint
+from slamtka.service.admission import Admission, Ticket
+from slamtka.service.tls import fingerprint
 
 __all__ = ["GuardedServer", "WireLimits", "ASSOCIATE_RQ_MAX_BYTES"]
 

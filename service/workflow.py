@@ -23,18 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
-from solver.geometry import Pose
-from solver.measurement import pin_axis_points
+from slamtka.solver.geometry import Pose
+from slamtka.solver.measurement import pin_axis_points
 
-from .audit import AuditLog
-from .cases import Case, View, run_id_of
-from .display import Status, build_status_objects
-from .frames import decode_frame
-from .headers import sanitised_header
-from .pinsets import (MIN_PIN_THRESHOLD_PX, NO_CONTOURS, PIN_NOISE_FACTOR, CasePinSets, PinSet,
+from slamtka.service.audit import AuditLog
+from slamtka.service.cases import Case, View, run_id_of
+from slamtka.service.display import Status, build_status_objects
+from slamtka.service.frames import decode_frame
+from slamtka.service.headers import sanitised_header
+from slamtka.service.pinsets import (MIN_PIN_THRESHOLD_PX, NO_CONTOURS, PIN_NOISE_FACTOR, CasePinSets, PinSet,
                       PinSetStore, pin_disagreement_px)
-from .sender import OutgoingObject, Sender
-from .spool import write_atomic, write_json_atomic
+from slamtka.service.sender import OutgoingObject, Sender
+from slamtka.service.atomic_files import write_atomic, write_json_atomic
 
 __all__ = ["Workflow", "write_request", "REQUEST_KINDS"]
 
@@ -303,8 +303,8 @@ class Workflow:
                              ).hexdigest()[:16]
         run_id = f"status-{key}"
         try:
-            from .pipeline import result_uid  # the pipeline module is loaded by then
-            from solver.result import software_version
+            from slamtka.service.pipeline import result_uid  # the pipeline module is loaded by then
+            from slamtka.solver.result import software_version
 
             ds = self.pipeline.spool.read(view.entry)
             pixels = decode_frame(ds).pixels

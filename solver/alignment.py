@@ -13,10 +13,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .camera import Camera
-from .geometry import Pose, rotation_about
-from .observations import DistanceMap
-from .silhouette import ContourGenerator
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.observations import DistanceMap
+from slamtka.solver.silhouette import ContourGenerator
 
 __all__ = ["align_view_in_image"]
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .geometry import Pose
-from .jsonfile import read_json_object
+from slamtka.solver.geometry import Pose
+from slamtka.solver.jsonfile import read_json_object
 
 __all__ = ["Landmarks", "SIGN_CONVENTION", "resection_angles", "plane_normal_from_angles"]
 
@@ -103,7 +103,7 @@ class Landmarks:
 
         ``anterior`` is a direction; ``tuberosity`` (a point) may be given instead.
         """
-        from .meshes import UNIT_SCALE_TO_MM
+        from slamtka.solver.meshes import UNIT_SCALE_TO_MM
 
         units = d.get("units", "mm")
         if scale_to_mm is None:

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import Pose, rotation_about
-from .sdf import SignedDistanceField
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.sdf import SignedDistanceField
 
 __all__ = ["block_axes", "bone_entry_mm", "pin_pose"]
 

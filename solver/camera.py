@@ -15,7 +15,7 @@ import operator
 
 import numpy as np
 
-from .geometry import row_norms
+from slamtka.solver.geometry import row_norms
 
 __all__ = ["Camera"]
 

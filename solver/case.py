@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .geometry import Pose
-from .imaging import calibration as imaging_calibration
-from .jsonfile import read_json_object
-from .observations import LABELS, ViewObservation
-from .plan import Plan
-from .slam import InitialGuess
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging import calibration as imaging_calibration
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.slam import InitialGuess
 
 __all__ = ["Case", "CASE_FORMAT", "load_case", "write_case"]
 

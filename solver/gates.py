@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .geometry import Pose
-from .observations import LABELS, PIN_LABELS
-from .optimizer import RobustLoss, State, Term
-from .terms import BackProjectionTerm
+from slamtka.solver.geometry import Pose
+from slamtka.solver.observations import LABELS, PIN_LABELS
+from slamtka.solver.optimizer import RobustLoss, State, Term
+from slamtka.solver.terms import BackProjectionTerm
 
 if TYPE_CHECKING:
-    from .slam import InitialGuess, JointProblem
+    from slamtka.solver.slam import InitialGuess, JointProblem
 
 
 def view_separation_deg(views: list[Pose]) -> float:

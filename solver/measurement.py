@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .anatomy import Landmarks, resection_angles
-from .geometry import Pose
+from slamtka.solver.anatomy import Landmarks, resection_angles
+from slamtka.solver.geometry import Pose
 
 __all__ = ["ResectionPlane", "fit_resection_plane", "angle_covariance"]
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .camera import Camera
-from .geometry import row_norms
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import row_norms
 
 __all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation"]
 

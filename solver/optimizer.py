@@ -19,7 +19,7 @@ from typing import Callable, Protocol
 import numpy as np
 from scipy import sparse
 
-from .geometry import Pose, cross
+from slamtka.solver.geometry import Pose, cross
 
 __all__ = [
     "SharedError",

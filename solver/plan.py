@@ -25,13 +25,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .anatomy import Landmarks
-from .jsonfile import read_json_object
-from .meshes import load_mesh
-from .phantom import build_phantom
-from .pin import PinSpec, build_pin
-from .sdf import SignedDistanceField
-from .silhouette import ContourGenerator
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.meshes import load_mesh
+from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.sdf import SignedDistanceField
+from slamtka.solver.silhouette import ContourGenerator
 
 __all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout"]
 
@@ -156,15 +155,6 @@ class Plan:
             return self.folder / "cache"
         base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
         return Path(base) / "slamtka"
-
-    @staticmethod
-    def phantom(side: str = "right", target: Target = Target()) -> Plan:
-        """The built-in parametric tibia and fibula with the default trocar pin."""
-        bone = build_phantom(side)
-        landmarks = Landmarks(bone.knee_centre, bone.ankle_centre, bone.anterior, side)
-        spec = PinSpec()
-        return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM",
-                    segmentation_sd_mm=0.0)
 
     @staticmethod
     def from_meshes(tibia: Path, fibula: Path | None, landmarks: Path,

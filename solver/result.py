@@ -12,11 +12,11 @@ from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
 
-from .anatomy import SIGN_CONVENTION
-from .observations import ViewObservation
-from .plan import Plan
-from .sdf import mesh_digest
-from .slam import SolveOutcome
+from slamtka.solver.anatomy import SIGN_CONVENTION
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.sdf import mesh_digest
+from slamtka.solver.slam import SolveOutcome
 
 __all__ = ["RESULT_FORMAT", "result_document", "software_version"]
 

@@ -22,7 +22,7 @@ import igl
 import numpy as np
 import trimesh
 
-from .geometry import row_norms
+from slamtka.solver.geometry import row_norms
 
 __all__ = ["SignedDistanceField", "mesh_digest", "MAX_GRID_VOXELS"]
 

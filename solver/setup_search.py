@@ -29,11 +29,11 @@ from itertools import product
 import cv2
 import numpy as np
 
-from .camera import Camera
-from .geometry import Pose, so3_exp
-from .observations import DistanceMap
-from .silhouette import ContourGenerator
-from .triangulation import triangulate_rays
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, so3_exp
+from slamtka.solver.observations import DistanceMap
+from slamtka.solver.silhouette import ContourGenerator
+from slamtka.solver.triangulation import triangulate_rays
 
 __all__ = ["SetupSearch", "search_setup"]
 

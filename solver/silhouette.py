@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import trimesh
 
-from .camera import Camera
-from .geometry import Pose, box_corners, row_norms
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, box_corners, row_norms
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
 

@@ -36,13 +36,13 @@ from typing import Callable, NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from . import gates
-from .alignment import align_view_in_image
-from .camera import Camera
-from .geometry import Pose
-from .measurement import ResectionPlane, angle_covariance, fit_resection_plane
-from .observations import LABELS, PIN_LABELS, ViewObservation
-from .optimizer import (
+from slamtka.solver import gates
+from slamtka.solver.alignment import align_view_in_image
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
+from slamtka.solver.measurement import ResectionPlane, angle_covariance, fit_resection_plane
+from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation
+from slamtka.solver.optimizer import (
     IterationInfo,
     LMOptions,
     RobustLoss,
@@ -53,10 +53,10 @@ from .optimizer import (
     levenberg_marquardt,
     pose_covariance,
 )
-from .plan import Plan, RigidModel
-from .setup_search import SetupSearch, search_setup
-from .triangulation import PinSighting, triangulate_pin
-from .terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
+from slamtka.solver.plan import Plan, RigidModel
+from slamtka.solver.setup_search import SetupSearch, search_setup
+from slamtka.solver.triangulation import PinSighting, triangulate_pin
+from slamtka.solver.terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 

@@ -23,12 +23,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .camera import Camera
-from .geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
-from .observations import DistanceMap
-from .optimizer import Linearization, RobustLoss, State
-from .silhouette import INTERIOR_REUSE_PX, ContourGenerator
-from .sdf import SignedDistanceField
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
+from slamtka.solver.observations import DistanceMap
+from slamtka.solver.optimizer import Linearization, RobustLoss, State
+from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
+from slamtka.solver.sdf import SignedDistanceField
 
 __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
            "pose_increments", "projected"]

@@ -16,8 +16,8 @@ from itertools import product
 
 import numpy as np
 
-from .camera import Camera
-from .geometry import Pose
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
 
 __all__ = ["PinSighting", "triangulate_pin", "triangulate_rays"]
 

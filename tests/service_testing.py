@@ -7,8 +7,8 @@ import socket
 
 import numpy as np
 
-from service.frames import Frame
-from service.pki import make_pki
+from slamtka.service.frames import Frame
+from slamtka.bench.pki import make_pki
 
 __all__ = ["free_port", "small_frame", "make_pki"]
 

@@ -14,20 +14,21 @@ from pydicom.datadict import dictionary_VR
 from pydicom.tag import Tag
 from pydicom.uid import RLELossless
 
-from drivers.encoder_link import LinkConfig
-from drivers.kinematics import CArmKinematics
-from service.calibrate import read_phantom_image as read_calibration_image
-from service.cli import main
-from service.config import ConfigError, config_from_dict
-from service.frames import Frame, FrameError, decode_frame, encode_frame
-from solver.camera import Camera
-from solver.case import load_case, write_case
-from solver.geometry import Pose
-from solver.imaging.calibration import CalibrationError, _digest, load_calibration, write_calibration
-from solver.observations import ViewObservation
-from solver.plan import Plan
-from solver.simulate import default_camera
-from solver.slam import InitialGuess
+from slamtka.drivers.encoder_link import LinkConfig
+from slamtka.drivers.kinematics import CArmKinematics
+from slamtka.service.calibrate import read_phantom_image as read_calibration_image
+from slamtka.service.cli import main
+from slamtka.service.config import ConfigError, config_from_dict
+from slamtka.service.frames import Frame, FrameError, decode_frame, encode_frame
+from slamtka.solver.camera import Camera
+from slamtka.solver.case import load_case, write_case
+from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.calibration import CalibrationError, _digest, load_calibration, write_calibration
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import default_camera
+from slamtka.solver.slam import InitialGuess
+from slamtka.sim.bone_phantom import phantom_plan
 
 CAMERA = default_camera()
 
@@ -40,7 +41,7 @@ def valid_case(tmp_path_factory):
     views = [ViewObservation(f"view{k}", CAMERA, {"bone": square, "pin1": square + 5, "pin2": square - 5})
              for k in (1, 2)]
     initial = InitialGuess((Pose.identity(), Pose.identity()), (Pose.identity(), Pose.identity()), None)
-    write_case(folder, "bad-inputs", Plan.phantom("right"), views, initial, "cal")
+    write_case(folder, "bad-inputs", phantom_plan("right"), views, initial, "cal")
     return folder
 
 
@@ -167,7 +168,7 @@ def test_binary_landmarks_are_named_by_plan_add(tmp_path, capsys):
     binary = tmp_path / "landmarks.json"
     binary.write_bytes(b"\xff\xfe\x00junk")
     tibia = tmp_path / "tibia.stl"
-    Plan.phantom().tibia.export(tibia)
+    phantom_plan().tibia.export(tibia)
     assert main(["plan", "add", "--plans", str(tmp_path / "plans"), "--patient-id", "P1",
                  "--side", "right", "--tibia", str(tibia), "--landmarks", str(binary)]) == 2
     assert f"{binary}: not a text (UTF-8) file" in capsys.readouterr().err

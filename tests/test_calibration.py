@@ -13,21 +13,21 @@ import pytest
 from pydicom.uid import generate_uid
 from pynetdicom import AE
 
-from drivers.kinematics import CArmKinematics
-from service.audit import AuditLog
-from service.calibrations import CalibrationSet, device_identity
-from service.cases import CaseAssembler
-from service.cli import main
-from service.config import DicomConfig
-from service.frames import encode_frame
-from service.pipeline import Pipeline
-from service.plans import PlanStore
-from service.poses import ViewGeometry
-from service.scp import DicomReceiver
-from service.spool import Spool
+from slamtka.drivers.kinematics import CArmKinematics
+from slamtka.service.audit import AuditLog
+from slamtka.service.calibrations import CalibrationSet, device_identity
+from slamtka.service.cases import CaseAssembler
+from slamtka.service.cli import main
+from slamtka.service.config import DicomConfig
+from slamtka.service.frames import encode_frame
+from slamtka.service.pipeline import Pipeline
+from slamtka.service.plans import PlanStore
+from slamtka.service.poses import ViewGeometry
+from slamtka.service.scp import DicomReceiver
+from slamtka.service.spool import Spool
 from service_testing import free_port, small_frame
-from solver.camera import Camera
-from solver.imaging.calibration import (
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.calibration import (
     CalibrationError,
     CalibrationImage,
     CalibrationOptions,
@@ -35,9 +35,10 @@ from solver.imaging.calibration import (
     load_calibration,
     write_calibration,
 )
-from solver.imaging.phantom import PhantomSpec, plate_offsets, simulate_phantom_set
-from solver.imaging.xray import default_distortion
-from solver.simulate import default_camera
+from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
+from slamtka.solver.imaging.plate import PhantomSpec
+from slamtka.sim.xray import default_distortion
+from slamtka.sim.simulate import default_camera
 
 SPACING = (230 / 1024, 230 / 1024)
 
@@ -179,7 +180,7 @@ def _calibration(tmp_path, name: str, device: dict, field: float | None = None, 
     camera = Camera(300.0, 300.0, size / 2, size / 2, size, size)
     written = write_calibration(tmp_path / f"{name}.json", camera, None, "test", name, (0.3, 0.3))
     doc = written.document()
-    from solver.imaging.calibration import assign_device
+    from slamtka.solver.imaging.calibration import assign_device
 
     (tmp_path / f"{name}.json").write_text(json.dumps(assign_device(doc, device, field)))
     return load_calibration(tmp_path / f"{name}.json")

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from service.cli import main
+from slamtka.service.cli import main
 from tests.conftest import REAL_LANDMARKS, SHARED_DATA
 
 
@@ -53,7 +53,7 @@ def test_tampered_calibration_is_refused(tmp_path, real_plan):
 
 
 def test_demo_runs_on_the_builtin_phantom(tmp_path, phantom_plan):
-    result = subprocess.run([sys.executable, "-m", "service.cli", "demo", "--out", str(tmp_path / "demo")],
+    result = subprocess.run([sys.executable, "-m", "slamtka.service.cli", "demo", "--out", str(tmp_path / "demo")],
                             capture_output=True, text=True, timeout=600)
     assert result.returncode in (0, 3), result.stderr
     assert "CTR" in result.stdout or "reason" in result.stdout

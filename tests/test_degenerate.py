@@ -5,14 +5,15 @@ import json
 import numpy as np
 import pytest
 
-from service.cli import main
-from solver.degenerate import DEGENERATE_KINDS, degenerate_case
-from solver.plan import Plan
+from slamtka.service.cli import main
+from slamtka.sim.degenerate import DEGENERATE_KINDS, degenerate_case
+from slamtka.solver.plan import Plan
+from slamtka.sim.bone_phantom import phantom_plan
 
 
 @pytest.fixture(scope="module")
 def plans() -> dict[str, Plan]:
-    return {side: Plan.phantom(side) for side in ("left", "right")}
+    return {side: phantom_plan(side) for side in ("left", "right")}
 
 
 def test_each_kind_spoils_what_it_says(plans):

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from solver.anatomy import Landmarks, plane_normal_from_angles, resection_angles
-from solver.geometry import Pose, so3_exp, so3_log
+from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles, resection_angles
+from slamtka.solver.geometry import Pose, so3_exp, so3_log
 
 
 def test_so3_round_trip_including_near_pi():
@@ -52,8 +52,8 @@ def test_landmarks_refuse_nonsense():
 def test_relative_pose_jacobians_far_from_agreement():
     """E_odo's analytic Jacobians hold where the views disagree with the encoders by a lot
     (the simulated cases start where they agree, which tests little of the rotation part)."""
-    from solver.optimizer import State
-    from solver.terms import RelativePoseTerm
+    from slamtka.solver.optimizer import State
+    from slamtka.solver.terms import RelativePoseTerm
 
     rng = np.random.default_rng(3)
 
@@ -77,7 +77,7 @@ def test_relative_pose_jacobians_far_from_agreement():
 def test_cropped_distance_map_agrees_with_the_whole_image_map():
     """A pin's map is computed around its contour only: inside that window it is the full
     map; beyond, it still grows away from the contour (an upper bound that pulls back)."""
-    from solver.observations import DistanceMap
+    from slamtka.solver.observations import DistanceMap
 
     t = np.linspace(0.0, 1.0, 200)[:, None]
     points = np.array([400.0, 300.0]) + t * np.array([150.0, 60.0])

@@ -11,10 +11,10 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from service.bench_imaging import contour_scores, residual_distortion_px
-from service.cli import main
-from solver.camera import Camera
-from solver.imaging.calibration import (
+from slamtka.bench.imaging import contour_scores, residual_distortion_px
+from slamtka.service.cli import main
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.calibration import (
     CalibrationError,
     CalibrationImage,
     CalibrationOptions,
@@ -23,13 +23,14 @@ from solver.imaging.calibration import (
     match_grid,
     write_calibration,
 )
-from solver.imaging.ballgrid import GridError
-from solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
-from solver.imaging.distortion import Distortion
-from solver.imaging.phantom import PhantomSpec, simulate_phantom_images
-from solver.imaging.raster import path_lengths
-from solver.imaging.xray import XRayParams, default_distortion, render_radiograph
-from solver.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.solver.imaging.ballgrid import GridError
+from slamtka.solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.sim.plate_images import simulate_phantom_images
+from slamtka.solver.imaging.plate import PhantomSpec
+from slamtka.sim.raster import path_lengths
+from slamtka.sim.xray import XRayParams, default_distortion, render_radiograph
+from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
 
 
 def test_path_lengths_of_a_sphere_match_the_chord_formula():
@@ -222,7 +223,7 @@ def test_simulate_with_images_and_calibrate_command(tmp_path, phantom_set):
     assert {v["view_id"] for v in truth["views"]} == {"view1", "view2"}
     assert load_calibration(case / "calibration.json").distortion is not None
     # The calibrate command on DICOM phantom frames.
-    from service.frames import Frame, encode_frame
+    from slamtka.service.frames import Frame, encode_frame
     _, _, images = phantom_set
     paths = []
     for i, image in enumerate(images):

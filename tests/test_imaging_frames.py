@@ -13,7 +13,7 @@ import pytest
 from pydicom.dataset import Dataset
 from pydicom.uid import ExplicitVRLittleEndian
 
-from service.frames import (
+from slamtka.service.frames import (
     ENHANCED_XA_IMAGE_STORAGE,
     RF_IMAGE_STORAGE,
     XA_IMAGE_STORAGE,
@@ -22,7 +22,7 @@ from service.frames import (
     decode_frame,
     encode_frame,
 )
-from service.scp import check_instance
+from slamtka.service.scp import check_instance
 
 WHEN = datetime(2025, 3, 14, 9, 26, 53, 589793, tzinfo=timezone.utc)
 

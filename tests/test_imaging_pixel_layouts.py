@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.frames import FrameError, decode_frame, encode_frame
-from service.pixel_layouts import layout_cases
+from slamtka.service.frames import FrameError, decode_frame, encode_frame
+from slamtka.service.pixel_layouts import layout_cases
 from service_testing import small_frame
 
 CASES = layout_cases(encode_frame(small_frame()))

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from service.bench_realism import SHARED_DATA, realism_case
-from service.cli import main
-from solver.imaging.contours import UNFORESEEN_PREFIX, ContourError, extract_contours
-from solver.imaging.field import field_of_view, remove_overlays
-from solver.imaging.operating_room import (
+from slamtka.bench.realism import SHARED_DATA, realism_case
+from slamtka.service.cli import main
+from slamtka.solver.imaging.contours import UNFORESEEN_PREFIX, ContourError, extract_contours
+from slamtka.solver.imaging.field import field_of_view, remove_overlays
+from slamtka.sim.operating_room import (
     NUISANCES,
     OperatingRoom,
     render_room,
@@ -20,8 +20,8 @@ from solver.imaging.operating_room import (
     room_scene,
     view_angles,
 )
-from solver.imaging.xray import XRayParams
-from solver.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.sim.xray import XRayParams
+from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
 
 from frame_variants import TRANSFORMS, made_up_frames  # isort: skip
 

@@ -12,13 +12,13 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import pytest
 
-from drivers.carm_sim import DEFAULT_IDENTITY, FaultSpec, MotionScript, SimulatedCArm
-from drivers.kinematics import JointReading
-from drivers.encoder_link import (
+from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultSpec, MotionScript, SimulatedCArm
+from slamtka.drivers.kinematics import JointReading
+from slamtka.drivers.encoder_link import (
     EncoderLink, EncoderReading, LinkConfig, PortBusyError, PortNotFoundError, PortPermissionError,
     ProtocolVersionError, ReadingHistory, WrongDeviceError, open_port,
 )
-from drivers.protocol import (
+from slamtka.drivers.protocol import (
     Frame, FrameParser, MessageType, ResultCode, StatusFlags, encode_frame, encode_identity,
     encode_reading, encode_result,
 )

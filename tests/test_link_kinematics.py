@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from drivers.kinematics import (
+from slamtka.drivers.kinematics import (
     CArmKinematics, JointReading, PatientSetup, _beam, check_dicom_angles, dicom_angles,
     initial_view_poses,
 )
-from solver.anatomy import Landmarks
-from solver.geometry import so3_log
-from solver.phantom import build_phantom
-from solver.simulate import SOURCE_TO_ISOCENTRE_MM, _view_poses
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.geometry import so3_log
+from slamtka.sim.bone_phantom import build_phantom
+from slamtka.sim.simulate import SOURCE_TO_ISOCENTRE_MM, _view_poses
 
 KIN = CArmKinematics()
 REST = dict(lift_mm=200.0, travel_mm=100.0)  # a typical knee position, mid-range

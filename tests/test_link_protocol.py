@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.carm_sim import DEFAULT_IDENTITY, FaultInjector, FaultSpec
-from drivers.protocol import (
+from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultInjector, FaultSpec
+from slamtka.drivers.protocol import (
     FRAME_OVERHEAD, MARKER, MAX_PAYLOAD, AxisInfo, DeviceIdentity, Frame, FrameParser, MessageType,
     ProtocolError, ResultCode, Status, crc16, decode_identity, decode_reading, decode_result,
     decode_status, decode_stream_start, encode_frame, encode_identity, encode_reading, encode_result,

@@ -11,13 +11,13 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.carm_sim import DEFAULT_IDENTITY, FaultInjector, FaultSpec, MotionScript
-from drivers.encoder_link import EncoderLink
-from drivers.kinematics import JointReading
-from drivers.protocol import StatusFlags
-from service.cli import main
+from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultInjector, FaultSpec, MotionScript
+from slamtka.drivers.encoder_link import EncoderLink
+from slamtka.drivers.kinematics import JointReading
+from slamtka.drivers.protocol import StatusFlags
+from slamtka.service.cli import main
 
-SLAMTKA = [sys.executable, "-m", "service.cli"]
+SLAMTKA = [sys.executable, "-m", "slamtka.service.cli"]
 
 
 def test_fault_spec_parses_every_fault_and_rejects_nonsense():

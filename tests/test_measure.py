@@ -7,7 +7,7 @@ import json
 import pydicom
 import pytest
 
-from service.cli import main
+from slamtka.service.cli import main
 
 
 @pytest.fixture(scope="module")

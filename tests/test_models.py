@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from solver.meshes import MeshError, load_mesh
-from solver.pin import PinSpec, build_pin
-from solver.sdf import SignedDistanceField
+from slamtka.solver.meshes import MeshError, load_mesh
+from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.sdf import SignedDistanceField
 from tests.conftest import SHARED_DATA
 
 
@@ -112,9 +112,9 @@ def test_footprint_is_the_union_of_front_faces(open_mesh):
     """The footprint rasterised from the outline's winding number is exactly the union of the
     front-facing faces at pixel centres, for closed meshes and for open ones (a mesh with a
     hole is bounded there by its open edges)."""
-    from solver.camera import Camera
-    from solver.geometry import look_at
-    from solver.silhouette import ContourGenerator
+    from slamtka.solver.camera import Camera
+    from slamtka.solver.geometry import look_at
+    from slamtka.solver.silhouette import ContourGenerator
 
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
     mesh = trimesh.util.concatenate([mesh, trimesh.creation.box([30.0, 120.0, 30.0])])

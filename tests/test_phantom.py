@@ -14,7 +14,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from solver.phantom import PhantomBone, build_phantom
+from slamtka.sim.bone_phantom import PhantomBone, build_phantom
 
 LENGTH_MM = 370.0
 

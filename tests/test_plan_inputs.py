@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from service.cli import main
-from service.plans import PlanStore, _folder_name, estimate_landmarks
-from solver.anatomy import Landmarks
-from solver.meshes import MeshError, load_mesh
-from solver.plan import BONE_EXTENT_MM, Plan, Target
-from solver.sdf import SignedDistanceField
+from slamtka.service.cli import main
+from slamtka.service.plans import PlanStore, _folder_name, estimate_landmarks
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.meshes import MeshError, load_mesh
+from slamtka.solver.plan import BONE_EXTENT_MM, Plan, Target
+from slamtka.solver.sdf import SignedDistanceField
 
 KNEE, ANKLE = [0.0, 0.0, 180.0], [0.0, 0.0, -180.0]
 

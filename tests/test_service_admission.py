@@ -10,13 +10,13 @@ import pytest
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
 
-from service.audit import AuditLog, read_audit
-from service.config import ConfigError, config_from_dict
-from service.frames import encode_frame
-from service.pki import client_context
-from service.scp import DicomReceiver
-from service.spool import Spool
-from service.tls import certificate_sha256
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.config import ConfigError, config_from_dict
+from slamtka.service.frames import encode_frame
+from slamtka.bench.pki import client_context
+from slamtka.service.scp import DicomReceiver
+from slamtka.service.spool import Spool
+from slamtka.service.tls import certificate_sha256
 from service_testing import make_pki, small_frame
 
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from service.bench_hardening import run_items
-from service.bench_network import NETWORK_ITEMS
-from service.compressed import encoders_available
+from slamtka.bench.hardening import run_items
+from slamtka.bench.network import NETWORK_ITEMS
+from slamtka.service.compressed import encoders_available
 
 SMALL = {"tls_names": 1, "ae_squatting": 2, "compressed": 1, "pixel_layouts": 1}
 

@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from pydicom.uid import generate_uid
 
-from drivers.kinematics import CArmKinematics, JointReading, PatientSetup, initial_view_poses
-from service.cases import CaseAssembler
-from service.frames import encode_frame
-from service.poses import ViewGeometry, planned_pins, positioner_T_anat_cam
-from service.spool import Spool
-from solver.measurement import fit_resection_plane
-from solver.plan import Plan, Target
+from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, initial_view_poses
+from slamtka.service.cases import CaseAssembler
+from slamtka.service.frames import encode_frame
+from slamtka.service.poses import ViewGeometry, planned_pins, positioner_T_anat_cam
+from slamtka.service.spool import Spool
+from slamtka.solver.measurement import fit_resection_plane
+from slamtka.solver.plan import Plan, Target
+from slamtka.sim.bone_phantom import phantom_plan
 from service_testing import small_frame
 
 
@@ -72,7 +73,7 @@ def test_a_restart_rebuilds_cases_from_the_spool_and_its_sidecars(tmp_path):
 def test_positioner_poses_agree_with_the_c_arm_kinematics():
     """Pure orbital rotation: DICOM primary angle and the orbital joint are the same thing."""
     kinematics = CArmKinematics()
-    plan_frame = PatientSetup(Plan.phantom().landmarks.T_tibia_anat())
+    plan_frame = PatientSetup(phantom_plan().landmarks.T_tibia_anat())
     for angle in (-40.0, 0.0, 30.0):
         joints = JointReading(orbital_deg=angle)
         (T_cam_tibia,), _ = initial_view_poses(kinematics, [joints], plan_frame)
@@ -83,7 +84,7 @@ def test_positioner_poses_agree_with_the_c_arm_kinematics():
 
 @pytest.mark.parametrize("side", ["left", "right"])
 def test_planned_pins_lie_in_the_planned_plane(side):
-    plan = Plan.phantom(side, Target(2.0, 5.0, 3.0))
+    plan = phantom_plan(side, Target(2.0, 5.0, 3.0))
     pins = planned_pins(plan)
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
     assert np.degrees([plane.ctr, plane.str_]) == pytest.approx([2.0, 5.0], abs=1e-6)

@@ -8,11 +8,11 @@ import datetime as dt
 
 import pytest
 
-from drivers.encoder_link import EncoderReading, ReadingHistory
-from drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles
-from drivers.protocol import StatusFlags
-from service.clock import review_pairing
-from solver.anatomy import Landmarks
+from slamtka.drivers.encoder_link import EncoderReading, ReadingHistory
+from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles
+from slamtka.drivers.protocol import StatusFlags
+from slamtka.service.clock import review_pairing
+from slamtka.solver.anatomy import Landmarks
 
 T0 = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.timezone.utc)
 KIN = CArmKinematics()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from service.config import ConfigError, config_from_dict, load_config
+from slamtka.service.config import ConfigError, config_from_dict, load_config
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "deploy" / "slamtka.example.toml"
 MINIMAL = {"dicom": {"allowed_calling_ae_titles": ["CARM"]}, "carm": {"calibration": "cal.json"}}

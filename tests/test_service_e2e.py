@@ -20,15 +20,15 @@ import numpy as np
 import pydicom
 import pytest
 
-from service.audit import read_audit
-from service.cli import main
-from service.cases import case_id_of, run_id_of
-from service.display import STATUS_SERIES
-from service.frames import encode_frame
-from service.results import validate_result
-from service.theatre import CARM_AE, SERVICE_AE, Theatre
+from slamtka.service.audit import read_audit
+from slamtka.service.cli import main
+from slamtka.service.cases import case_id_of, run_id_of
+from slamtka.service.display import STATUS_SERIES
+from slamtka.service.frames import encode_frame
+from slamtka.service.results import validate_result
+from slamtka.sim.theatre import CARM_AE, SERVICE_AE, Theatre
 
-pytest.importorskip("solver.imaging.calibration",
+pytest.importorskip("slamtka.solver.imaging.calibration",
                     reason="the C-arm calibration module (imaging) has not landed yet")
 pytestmark = pytest.mark.skipif(
     not all(shutil.which(t) for t in ("dciodvfy", "dsrdump", "storescu", "echoscu")),
@@ -238,7 +238,7 @@ def test_replay_re_solves_the_recorded_inputs(theatre, capsys):
 def test_the_service_benchmark_writes_its_figures(tmp_path, capsys):
     code, out = _slamtka(capsys, "bench", "service", "--out", str(tmp_path), "--cases", "2")
     assert code == 0, out
-    figures = json.loads((tmp_path / "service.json").read_text())
+    figures = json.loads((tmp_path / "slamtka.service.json").read_text())
     assert figures["cases"] == 2 and len(figures["sequential"]) == 2 and len(figures["burst"]) == 2
     assert figures["latency_s"]["median"] > 0 and figures["throughput_cases_per_min"] > 0
     assert "median" in out and "cases/min" in out

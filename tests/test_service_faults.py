@@ -12,17 +12,18 @@ import psutil
 import pytest
 from pydicom.uid import UID
 
-from service.audit import AuditLog, read_audit
-from service.bench_faults import SoakFigures, crash, serial_faults, soak
-from service.bench_hardening import run_items
-from service.config import Destination, SenderConfig
-from service.pipeline import result_uid
-from service.recording import CaseRecorder
-from service.sender import OutgoingObject, Sender
-from service.spool import TEMP_PREFIX, Spool, remove_partial
-from service.status import StatusBoard
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.bench.faults import SoakFigures, crash, serial_faults, soak
+from slamtka.bench.hardening import run_items
+from slamtka.service.config import Destination, SenderConfig
+from slamtka.service.pipeline import result_uid
+from slamtka.service.recording import CaseRecorder
+from slamtka.service.sender import OutgoingObject, Sender
+from slamtka.service.atomic_files import TEMP_PREFIX, remove_partial
+from slamtka.service.spool import Spool
+from slamtka.service.status import StatusBoard
 
-pytest.importorskip("solver.imaging.calibration",
+pytest.importorskip("slamtka.solver.imaging.calibration",
                     reason="the C-arm calibration module (imaging) has not landed yet")
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 

@@ -18,24 +18,24 @@ import numpy as np
 import pydicom
 import pytest
 
-from drivers.kinematics import CArmKinematics
-from service.audit import AuditLog, read_audit
-from service.cases import CaseAssembler
-from service.config import SenderConfig
-from service.dicom_sc import ScOverlay, build_sc, render_overlay, wrap_text
-from service.dicom_sr import build_sr
-from service.frames import encode_frame
-from service.headers import sanitised_header
-from service.pinsets import PinSetStore, pin_disagreement_px
-from service.plans import PlanStore
-from service.poses import ViewGeometry
-from service.sender import Sender
-from service.spool import Spool
-from service.theatre import Theatre
-from service.workflow import Workflow, write_request
+from slamtka.drivers.kinematics import CArmKinematics
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.cases import CaseAssembler
+from slamtka.service.config import SenderConfig
+from slamtka.service.dicom_sc import ScOverlay, build_sc, render_overlay, wrap_text
+from slamtka.service.dicom_sr import build_sr
+from slamtka.service.frames import encode_frame
+from slamtka.service.headers import sanitised_header
+from slamtka.service.pinsets import PinSetStore, pin_disagreement_px
+from slamtka.service.plans import PlanStore
+from slamtka.service.poses import ViewGeometry
+from slamtka.service.sender import Sender
+from slamtka.service.spool import Spool
+from slamtka.sim.theatre import Theatre
+from slamtka.service.workflow import Workflow, write_request
 from service_testing import small_frame
 
-pytest.importorskip("solver.imaging.calibration")
+pytest.importorskip("slamtka.solver.imaging.calibration")
 _WHEN = dt.datetime(2026, 5, 6, 7, 8, 9, tzinfo=dt.timezone.utc)
 
 
@@ -54,9 +54,9 @@ class Loop:
     """A spool, cases, the pipeline and the workflow in ``root`` (no network)."""
 
     def __init__(self, root, th: Theatre, calibration_path, new_set_on_new_series=False):
-        from solver.imaging.calibration import load_calibration
+        from slamtka.solver.imaging.calibration import load_calibration
 
-        from service.pipeline import Pipeline
+        from slamtka.service.pipeline import Pipeline
 
         self.root = root
         self.spool = Spool(root / "spool")
@@ -240,7 +240,7 @@ def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything
     assert seen == [["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"]] * 3
 
     # A builder that fails anyway: result.json is still written, nothing is sent.
-    import service.pipeline as pipeline_module
+    import slamtka.service.pipeline as pipeline_module
 
     def broken(*args, **kwargs):
         raise ValueError("a value the builder refuses")
@@ -303,10 +303,10 @@ def test_overlay_text_wraps_and_is_never_cut():
 
 
 def test_pin_disagreement_grows_with_a_turn_of_the_pins(rendered):
-    from solver.imaging.calibration import load_calibration
-    from solver.imaging.contours import extract_contours
-    from solver.measurement import pin_axis_points
-    from drivers.kinematics import initial_view_poses
+    from slamtka.solver.imaging.calibration import load_calibration
+    from slamtka.solver.imaging.contours import extract_contours
+    from slamtka.solver.measurement import pin_axis_points
+    from slamtka.drivers.kinematics import initial_view_poses
 
     th, calibration_path, case, again, turned = rendered
     calibration = load_calibration(calibration_path)
@@ -353,8 +353,8 @@ def test_a_configured_rule_starts_a_set_on_each_new_series(rendered, tmp_path):
 
 
 def test_the_overlay_and_report_say_what_changed_since_the_previous_measurement():
-    from service.display import change_line
-    from service.pipeline import Pipeline
+    from slamtka.service.display import change_line
+    from slamtka.service.pipeline import Pipeline
 
     doc = {"status": "measured", "angles": {"ctr_deg": 0.4, "str_deg": 5.1, "ctr_sigma_deg": 0.1,
                                             "str_sigma_deg": 0.2},

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.cli import main
-from service.plans import PlanStore, estimate_landmarks
-from solver.phantom import build_phantom
-from solver.plan import Plan
+from slamtka.service.cli import main
+from slamtka.service.plans import PlanStore, estimate_landmarks
+from slamtka.sim.bone_phantom import build_phantom
+from slamtka.solver.plan import Plan
 
 SMITH = Path(__file__).resolve().parents[2] / "shared" / "data" / "knee-smith2019"
 SMITH_LANDMARKS = Path(__file__).resolve().parent / "data" / "knee-smith2019-landmarks.json"

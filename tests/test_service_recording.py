@@ -5,17 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from solver.optimizer import IterationInfo, State
-from solver.plan import Plan
+from slamtka.solver.optimizer import IterationInfo, State
+from slamtka.solver.plan import Plan
 
-from service.recording import CaseRecorder
-from service.replay import check_recording, read_recording
+from slamtka.service.recording import CaseRecorder
+from slamtka.service.replay import check_recording, read_recording
+from slamtka.sim.bone_phantom import phantom_plan
 from service_testing import small_frame
 
 
 @pytest.fixture(scope="module")
 def plan():
-    return Plan.phantom("right")
+    return phantom_plan("right")
 
 
 def _record(path, plan, result: dict) -> None:

@@ -14,16 +14,17 @@ import pydicom
 import pytest
 from pydicom.uid import generate_uid
 
-from solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
-from solver.plan import Plan, Target
-from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import InitialGuess, SolveOutcome
+from slamtka.solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
+from slamtka.solver.plan import Plan, Target
+from slamtka.sim.simulate import SimulationConfig, simulate_case
+from slamtka.solver.slam import InitialGuess, SolveOutcome
 
-from service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
-from service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
-from service.frames import encode_frame
-from service.pipeline import plane_polygon, result_uid
-from service.results import build_result, result_schema, validate_result
+from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
+from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from slamtka.service.frames import encode_frame
+from slamtka.service.pipeline import plane_polygon, result_uid
+from slamtka.service.results import build_result, result_schema, validate_result
+from slamtka.sim.bone_phantom import phantom_plan
 from service_testing import small_frame
 
 _WHEN = dt.datetime(2026, 3, 4, 10, 11, 12, 345000, tzinfo=dt.timezone.utc)
@@ -35,7 +36,7 @@ needs_dicom3tools = pytest.mark.skipif(shutil.which("dciodvfy") is None or
 @pytest.fixture(scope="module")
 def truth_case():
     """A simulated case and an outcome at its true poses (no solve needed for documents)."""
-    plan = Plan.phantom("right", Target(0.0, 3.0, 3.0))
+    plan = phantom_plan("right", Target(0.0, 3.0, 3.0))
     case = simulate_case(plan, SimulationConfig(seed=5))
     pins = case.truth_T_tibia_pin
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)

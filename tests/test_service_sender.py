@@ -6,11 +6,11 @@ import time
 
 from pydicom.uid import generate_uid
 
-from service.audit import AuditLog, read_audit
-from service.config import Destination, SenderConfig
-from service.frames import encode_frame
-from service.sender import OutgoingObject, Sender
-from service.theatre import ResultCollector
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.config import Destination, SenderConfig
+from slamtka.service.frames import encode_frame
+from slamtka.service.sender import OutgoingObject, Sender
+from slamtka.sim.theatre import ResultCollector
 from service_testing import free_port, small_frame
 
 SC = "1.2.840.10008.5.1.4.1.1.7"

@@ -6,12 +6,12 @@ import ssl
 
 import pytest
 
-from service.audit import AuditLog, read_audit
-from service.config import ConfigError, Destination, SenderConfig, config_from_dict
-from service.pki import OTHER_HOST, make_pki
-from service.sender import Sender
-from service.theatre import ResultCollector
-from service.tls import certificate_sha256
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.config import ConfigError, Destination, SenderConfig, config_from_dict
+from slamtka.bench.pki import OTHER_HOST, make_pki
+from slamtka.service.sender import Sender
+from slamtka.sim.theatre import ResultCollector
+from slamtka.service.tls import certificate_sha256
 from test_service_sender import _objects
 
 

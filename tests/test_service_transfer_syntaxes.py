@@ -13,16 +13,16 @@ from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless, RLELossless
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
 
-from service.audit import AuditLog, read_audit
-from service.compressed import (ENCODERS, NEAR_LOSSLESS_DEVIATION, compress, encoders_available,
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.compressed import (ENCODERS, NEAR_LOSSLESS_DEVIATION, compress, encoders_available,
                                 storescu)
-from service.config import config_from_dict
-from service.dataset_guard import DatasetError, check_dataset_bytes
-from service.frames import decode_frame, encode_frame
-from service.hostile import wire_bytes
-from service.scp import DicomReceiver
-from service.spool import Spool
-from service.status import Metrics
+from slamtka.service.config import config_from_dict
+from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
+from slamtka.service.frames import decode_frame, encode_frame
+from slamtka.bench.hostile import wire_bytes
+from slamtka.service.scp import DicomReceiver
+from slamtka.service.spool import Spool
+from slamtka.service.status import Metrics
 from service_testing import small_frame
 
 pytestmark = pytest.mark.skipif(not encoders_available(), reason="DCMTK not installed")

@@ -13,12 +13,12 @@ import time
 
 import pytest
 
-from service.audit import read_audit
-from service.cli import main
-from service.display import STATUS_SERIES
-from service.theatre import Theatre, _evidence
+from slamtka.service.audit import read_audit
+from slamtka.service.cli import main
+from slamtka.service.display import STATUS_SERIES
+from slamtka.sim.theatre import Theatre, _evidence
 
-pytest.importorskip("solver.imaging.calibration")
+pytest.importorskip("slamtka.solver.imaging.calibration")
 pytestmark = pytest.mark.skipif(not shutil.which("dsrdump"), reason="DCMTK is needed")
 
 

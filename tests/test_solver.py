@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from solver import gates, optimizer
-from solver.geometry import Pose, rotation_about
-from solver.observations import ViewObservation
-from solver.optimizer import State
-from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import METHODS, InitialGuess, JointProblem, SolverConfig, seat_on_rays, solve_joint
+from slamtka.solver import gates, optimizer
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.optimizer import State
+from slamtka.sim.simulate import SimulationConfig, simulate_case
+from slamtka.solver.slam import METHODS, InitialGuess, JointProblem, SolverConfig, seat_on_rays, solve_joint
 
 
 def _linearized_problem(plan, seed=0):
@@ -19,7 +19,7 @@ def _linearized_problem(plan, seed=0):
     problem = JointProblem(plan, case.views, SolverConfig(edge_spacing_px=12.0))
     poses = tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin)
     points, groups = problem.seated_points(poses)
-    from solver.optimizer import RobustLoss
+    from slamtka.solver.optimizer import RobustLoss
 
     terms = problem.edge_terms(points, groups) + problem.silhouette_terms(
         ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0)) + problem.odometry_terms(case.initial)
@@ -77,8 +77,8 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
     pose by what ``pose_covariance`` predicts for that one shared error (to 1%)."""
     from dataclasses import replace
 
-    from solver.optimizer import RobustLoss, SharedError, _evaluate, _solve_step, pose_covariance
-    from solver.terms import BackProjectionTerm
+    from slamtka.solver.optimizer import RobustLoss, SharedError, _evaluate, _solve_step, pose_covariance
+    from slamtka.solver.terms import BackProjectionTerm
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=4, init_rot_sd_rad=0.0, init_trans_sd_mm=0.0))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
@@ -330,7 +330,7 @@ def test_an_unknown_method_is_refused_by_name():
 def test_a_model_outline_off_its_contour_is_named(real_plan):
     """The final fit check traces every silhouette at the final poses: a pin 4 mm off
     (a solve caught in a wrong basin) is refused by name, the true poses pass."""
-    from solver.gates import contour_misfit
+    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8))
     problem = JointProblem(real_plan, case.views, SolverConfig())
@@ -342,7 +342,7 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
     assert reason is not None and "pin1 outline" in reason
     # A pin turned 2 deg about its tip keeps most of its outline near the contour (a small
     # median) but its far end off it.
-    from solver.geometry import rotation_about
+    from slamtka.solver.geometry import rotation_about
 
     turned = Pose(truth[-1].R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), truth[-1].t)
     strict = JointProblem(real_plan, case.views, SolverConfig(max_pin_outline_p90_px=6.0))
@@ -353,7 +353,7 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
 def test_pin_edge_points_off_the_pin_are_named(real_plan):
     """Edge points seated at the true poses lie on the pins; those of one pin in one view
     carried 1.5 mm off it (its views disagree about where it is) are refused by name."""
-    from solver.gates import contour_misfit
+    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8, noise_px=0.0))
     problem = JointProblem(real_plan, case.views, SolverConfig())
@@ -423,7 +423,7 @@ def test_stray_bone_contour_points_get_no_edge_points(phantom_plan):
 def test_a_bone_contour_that_mostly_misses_the_bone_is_refused(phantom_plan):
     """A bone contour of which 30% of the rays miss the bone at the final poses is not its
     outline: refused by name."""
-    from solver.gates import contour_misfit
+    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=12, noise_px=0.0))
     problem = JointProblem(phantom_plan, _with_stray_bone_pixels(case, 0.3, seed=2)[0],
@@ -475,8 +475,8 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
 def test_pins_that_are_not_parallel_are_named(phantom_plan):
     """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
     tip (whatever the contours say) is refused by name."""
-    from solver.geometry import rotation_about
-    from solver.gates import pin_divergence
+    from slamtka.solver.geometry import rotation_about
+    from slamtka.solver.gates import pin_divergence
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
@@ -516,8 +516,8 @@ def test_a_pin_partly_off_its_contour_sends_the_solve_to_the_global_search(real_
 def _left_after_search(plan, case, initial: list[Pose], search) -> tuple[float, float]:
     """Rotation (deg) and translation (mm) of the patient set-up error left after the
     global search from the views' ``initial`` poses (at the knee, anatomical frame)."""
-    from solver.geometry import so3_log
-    from solver.setup_search import search_setup
+    from slamtka.solver.geometry import so3_log
+    from slamtka.solver.setup_search import search_setup
 
     anatomy = plan.landmarks.T_tibia_anat()
 
@@ -535,8 +535,8 @@ def _left_after_search(plan, case, initial: list[Pose], search) -> tuple[float, 
 def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     """Tens of degrees and tens of millimetres of patient set-up error, shared by both
     views, come back to a few degrees and millimetres: a start local solving can finish."""
-    from solver.geometry import rotation_about
-    from solver.setup_search import SetupSearch
+    from slamtka.solver.geometry import rotation_about
+    from slamtka.solver.setup_search import SetupSearch
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=2))
     anatomy = phantom_plan.landmarks.T_tibia_anat()
@@ -559,7 +559,7 @@ def test_wide_setup_search_recovers_study_cases_it_used_to_miss(phantom_plan, le
     - 5099, 60 deg about the AP axis and 290 mm of translation to undo: the translation was
       applied before the rotation, so each rotation also moved the knee; a hypothesis now
       turns the bone about the knee and then carries the knee where the views see it."""
-    from solver.slam import SolverConfig
+    from slamtka.solver.slam import SolverConfig
 
     case = simulate_case(phantom_plan, SimulationConfig.at_level(level, seed))
     rotation_deg, translation_mm = _left_after_search(
@@ -572,7 +572,7 @@ def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_
     field of the asked SD, and leaves the case's truth (pins, views) as it was."""
     import trimesh
 
-    from solver.simulate import segmentation_error
+    from slamtka.sim.simulate import segmentation_error
 
     bone = trimesh.util.concatenate(phantom_plan.bone_meshes())
     moved = segmentation_error(bone, 0.5, np.random.default_rng(7))

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from .distortion import Distortion
+from slamtka.solver.imaging.distortion import Distortion
 
 __all__ = ["Bundle", "Observations", "rotations", "plate_basis", "solve", "ball_residuals",
            "parameter_sigmas", "N_INTRINSIC"]

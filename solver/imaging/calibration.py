@@ -46,13 +46,13 @@ from collections import Counter
 import cv2
 import numpy as np
 
-from ..camera import Camera
-from ..jsonfile import read_json_object
-from . import bundle
-from .ballgrid import GridError, detect_balls, match_grid, placements
-from .distortion import Distortion
-from .field import FieldError, field_of_view
-from .phantom import PhantomSpec
+from slamtka.solver.camera import Camera
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.imaging import bundle
+from slamtka.solver.imaging.ballgrid import GridError, detect_balls, match_grid, placements
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.solver.imaging.field import FieldError, field_of_view
+from slamtka.solver.imaging.plate import PhantomSpec
 
 __all__ = ["Calibration", "CalibrationError", "CalibrationOptions", "CalibrationImage",
            "calibrate", "detect_balls", "match_grid", "load_calibration", "calibration_document",

@@ -23,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from solver.plan import Plan
-from solver.simulate import SimulationConfig, simulate_case
-from solver.slam import SolverConfig, solve_joint
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import SimulationConfig, simulate_case
+from slamtka.solver.slam import SolverConfig, solve_joint
+from slamtka.sim.bone_phantom import phantom_plan
 
 
 def _timed_solve(plan: Plan, seed: int, level: int) -> dict:
@@ -79,7 +80,7 @@ def _table(runs: list[dict], peak_mb: float, rss_mb: float) -> str:
 
 def run_speed(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
-    plan = Plan.phantom() if args.tibia is None else Plan.from_meshes(args.tibia, args.fibula,
+    plan = phantom_plan() if args.tibia is None else Plan.from_meshes(args.tibia, args.fibula,
                                                                       args.landmarks)
     plan.bone_model()
     plan.pin_model()

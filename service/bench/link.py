@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 import serial
 
-from .carm_sim import FaultSpec, MotionScript, SimulatedCArm
-from .encoder_link import EncoderLink, EncoderReading, LinkConfig, LinkState
+from slamtka.drivers.carm_sim import FaultSpec, MotionScript, SimulatedCArm
+from slamtka.drivers.encoder_link import EncoderLink, EncoderReading, LinkConfig, LinkState
 
 # How long the bench waits for a link event before counting it as never having come. The
 # figures are measured from the events' own timestamps and have their own targets, so this

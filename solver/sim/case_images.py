@@ -22,18 +22,18 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import generate_uid
 
-from solver.imaging.calibration import write_calibration
-from solver.imaging.operating_room import OperatingRoom, render_room, room_bodies, room_scene
-from solver.imaging.xray import XRayParams, XRayScene, default_distortion
-from solver.plan import Plan
-from solver.simulate import (
+from slamtka.solver.imaging.calibration import write_calibration
+from slamtka.sim.operating_room import OperatingRoom, render_room, room_bodies, room_scene
+from slamtka.sim.xray import XRayParams, XRayScene, default_distortion
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import (
     DETECTOR_FIELD_MM,
     SOURCE_TO_DETECTOR_MM,
     SOURCE_TO_ISOCENTRE_MM,
     SimulatedCase,
 )
 
-from .frames import Frame, encode_frame
+from slamtka.service.frames import Frame, encode_frame
 
 __all__ = ["write_case_images"]
 

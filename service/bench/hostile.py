@@ -22,7 +22,7 @@ from pydicom.filebase import DicomBytesIO
 from pydicom.filewriter import write_dataset
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, generate_uid
 
-from .frames import XA_IMAGE_STORAGE, Frame, encode_frame
+from slamtka.service.frames import XA_IMAGE_STORAGE, Frame, encode_frame
 
 __all__ = ["RawAssociation", "Dropped", "frame_dataset_bytes", "dataset_bytes", "wire_bytes",
            "noise_frame", "uid_cases",

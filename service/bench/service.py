@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .theatre import Theatre, TheatreCase, parse_angles
+from slamtka.sim.theatre import Theatre, TheatreCase, parse_angles
 
 __all__ = ["add_service_bench_parser", "run_service_bench"]
 
@@ -37,7 +37,7 @@ def _angles_from_sr(sr) -> dict:
     """CTR/STR (deg) as the OR display reads them from the SR, or the refusal."""
     import highdicom as hd  # here: `slamtka` starts without it unless benchmarking
 
-    from .dicom_sr import CODES
+    from slamtka.service.dicom_sr import CODES
 
     report = hd.sr.Comprehensive3DSR.from_dataset(sr)
     groups = report.content.get_planar_roi_measurement_groups()
@@ -111,7 +111,7 @@ def run_service_bench(args: argparse.Namespace) -> int:
                     "python": platform.python_version()},
         "render_seconds": render_s,
     }
-    (out / "service.json").write_text(json.dumps(summary, indent=2))
+    (out / "slamtka.service.json").write_text(json.dumps(summary, indent=2))
     print(f"latency (second view C-STORE -> SR at the display), {args.cases} cases: median "
           f"{latency['median']:.2f} s, p90 {latency['p90']:.2f} s, max {latency['max']:.2f} s")
     print(f"throughput: {len(burst)} cases in {burst_s:.1f} s = "
@@ -119,7 +119,7 @@ def run_service_bench(args: argparse.Namespace) -> int:
     if measured:
         print(f"|CTR error| median {summary['abs_ctr_error_deg']['median']:.2f} deg, "
               f"|STR error| median {summary['abs_str_error_deg']['median']:.2f} deg")
-    print(f"wrote {out / 'service.json'}")
+    print(f"wrote {out / 'slamtka.service.json'}")
     return 0
 
 

@@ -36,12 +36,12 @@ import cv2
 import numpy as np
 import trimesh
 
-from ..camera import Camera
-from ..geometry import Pose
-from ..plan import Plan
-from ..silhouette import ContourGenerator
-from .distortion import Distortion
-from .raster import path_lengths
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
+from slamtka.solver.plan import Plan
+from slamtka.solver.silhouette import ContourGenerator
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.sim.raster import path_lengths
 
 __all__ = ["XRayParams", "XRayScene", "Radiograph", "render_radiograph", "render_bodies",
            "default_distortion", "Body"]

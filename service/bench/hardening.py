@@ -30,16 +30,16 @@ import psutil
 import pydicom
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 
-from .audit import AuditLog, read_audit
-from .config import config_from_dict
-from .frames import XA_IMAGE_STORAGE, decode_frame
-from .hostile import (DEFLATED, Dropped, RawAssociation, deflate_bomb,
+from slamtka.service.audit import AuditLog, read_audit
+from slamtka.service.config import config_from_dict
+from slamtka.service.frames import XA_IMAGE_STORAGE, decode_frame
+from slamtka.bench.hostile import (DEFLATED, Dropped, RawAssociation, deflate_bomb,
                       element_length_cases, frame_dataset_bytes, malformed_pdus, mutations,
                       nested_sequence, pdata, pixel_length_cases, store_command, truncations,
                       uid_cases, with_uid)
-from .pki import client_context, make_pki
-from .scp import DicomReceiver, check_instance
-from .spool import Spool, entry_id
+from slamtka.bench.pki import client_context, make_pki
+from slamtka.service.scp import DicomReceiver, check_instance
+from slamtka.service.spool import Spool, entry_id
 
 __all__ = ["Target", "ITEMS", "run_items", "add_hardening_bench_parser"]
 
@@ -532,8 +532,8 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
     """Run each item in ``counts`` in its own folder under ``root``: the receiver items
     against a fresh receiver, the fault items (:mod:`service.bench_faults`) against the
     whole service."""
-    from .bench_faults import FAULT_ITEMS, run_fault_item  # they build on this module
-    from .bench_network import NETWORK_ITEMS, run_network_item
+    from slamtka.bench.faults import FAULT_ITEMS, run_fault_item  # they build on this module
+    from slamtka.bench.network import NETWORK_ITEMS, run_network_item
 
     results = {}
     for name, count in counts.items():
@@ -581,8 +581,8 @@ def run_hardening_bench(args: argparse.Namespace) -> int:
 
 
 def add_hardening_bench_parser(kinds: argparse._SubParsersAction) -> None:
-    from .bench_faults import FAULT_ITEMS
-    from .bench_network import NETWORK_ITEMS
+    from slamtka.bench.faults import FAULT_ITEMS
+    from slamtka.bench.network import NETWORK_ITEMS
 
     p = kinds.add_parser("hardening", help="hostile DICOM, admission, TLS, floods, disk full, "
                                                 "crashes, faults, soak, TLS names, AE "

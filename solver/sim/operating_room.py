@@ -37,11 +37,11 @@ import cv2
 import numpy as np
 import trimesh
 
-from ..camera import Camera
-from ..geometry import Pose, rotation_about
-from ..plan import Plan
-from .distortion import Distortion
-from .xray import (
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.plan import Plan
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.sim.xray import (
     Body,
     Radiograph,
     XRayParams,

@@ -33,21 +33,21 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from solver.camera import Camera
-from solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
-from solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
-from solver.imaging.distortion import Distortion
-from solver.imaging.phantom import (
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.sim.plate_images import (
     PhantomSet,
-    PhantomSpec,
     plate_offsets,
     simulate_phantom_images,
     simulate_phantom_set,
 )
-from solver.imaging.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
-from solver.observations import ViewObservation
-from solver.plan import Plan
-from solver.simulate import (
+from slamtka.solver.imaging.plate import PhantomSpec
+from slamtka.sim.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import (
     DETECTOR_FIELD_MM,
     ROT_SD_PER_LEVEL_RAD,
     TRANS_SD_PER_LEVEL_MM,
@@ -55,7 +55,8 @@ from solver.simulate import (
     default_camera,
     simulate_case,
 )
-from solver.slam import SolverConfig, solve_joint
+from slamtka.solver.slam import SolverConfig, solve_joint
+from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["contour_scores", "residual_distortion_px", "add_imaging_bench_parser", "run_imaging"]
 
@@ -223,7 +224,7 @@ def _timed(wall: list[float], cpu: list[float], fn: Callable[..., Result], *args
 
 def run_imaging(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
-    plan = Plan.phantom()
+    plan = phantom_plan()
     plan.bone_model()
     plan.pin_model()
     camera = default_camera()

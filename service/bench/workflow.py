@@ -33,10 +33,10 @@ from pathlib import Path
 
 from pydicom.uid import generate_uid
 
-from .bench_service import _angles_from_sr, _percentiles
-from .dicom_sr import CODES
-from .display import STATUS_SERIES
-from .theatre import Theatre, TheatreCase, _evidence, parse_angles
+from slamtka.bench.service import _angles_from_sr, _percentiles
+from slamtka.service.dicom_sr import CODES
+from slamtka.service.display import STATUS_SERIES
+from slamtka.sim.theatre import Theatre, TheatreCase, _evidence, parse_angles
 
 __all__ = ["add_workflow_bench_parser", "run_workflow_bench"]
 

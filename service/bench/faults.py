@@ -41,17 +41,17 @@ import psutil
 import pydicom
 from pydicom.uid import generate_uid
 
-from drivers.carm_sim import FaultSpec
+from slamtka.drivers.carm_sim import FaultSpec
 
-from .audit import read_audit
-from .bench_hardening import Tally
-from .cases import case_id_of, run_id_of
-from .frames import Frame
-from .hostile import (Dropped, RawAssociation, dataset_bytes, element_length_cases,
+from slamtka.service.audit import read_audit
+from slamtka.bench.hardening import Tally
+from slamtka.service.cases import case_id_of, run_id_of
+from slamtka.service.frames import Frame
+from slamtka.bench.hostile import (Dropped, RawAssociation, dataset_bytes, element_length_cases,
                       malformed_pdus, pixel_length_cases, truncations, with_uid)
-from .spool import entry_id
-from .display import STATUS_SERIES
-from .theatre import CARM_AE, PATIENT_ID, SERVICE_AE, ResultCollector, Theatre
+from slamtka.service.spool import entry_id
+from slamtka.service.display import STATUS_SERIES
+from slamtka.sim.theatre import CARM_AE, PATIENT_ID, SERVICE_AE, ResultCollector, Theatre
 
 __all__ = ["FAULT_ITEMS", "run_fault_item", "crash", "destination_down", "serial_faults", "soak",
            "SoakFigures", "SmallCase", "small_case", "CArmClient", "running_theatre"]
@@ -222,7 +222,7 @@ def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
             status = client.store(data, uid)
             if status is None:  # the service went away mid-store: send it again
                 if not thread.is_alive() and theatre.service.poll() is not None:
-                    raise RuntimeError(f"the service is down for good; see {root / 'service.log'}")
+                    raise RuntimeError(f"the service is down for good; see {root / 'slamtka.service.log'}")
                 time.sleep(0.05)
                 continue
             queue.popleft()
@@ -523,7 +523,7 @@ def run_fault_item(name: str, root: Path, count: float) -> Tally:
     else:
         items = {"destination_down": destination_down, "serial_faults": serial_faults}
         tally = items[name](root, int(count))
-    service_log = root / "service.log"
+    service_log = root / "slamtka.service.log"
     if tally.failures and service_log.is_file():
         tally.notes["service_log_tail"] = service_log.read_text(errors="replace").splitlines()[-40:]
     return tally

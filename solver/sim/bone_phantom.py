@@ -31,7 +31,11 @@ import numpy as np
 import trimesh
 from scipy.interpolate import PchipInterpolator
 
-__all__ = ["PhantomBone", "build_phantom", "MIN_LENGTH_MM", "MAX_LENGTH_MM"]
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.plan import Plan, Target
+
+__all__ = ["PhantomBone", "build_phantom", "phantom_plan", "MIN_LENGTH_MM", "MAX_LENGTH_MM"]
 
 Array = np.ndarray
 
@@ -675,3 +679,14 @@ def _mirror_x(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """Mirror a right-leg mesh to the left leg, keeping outward winding."""
     vertices = mesh.vertices * np.array([-1.0, 1.0, 1.0])
     return trimesh.Trimesh(vertices, mesh.faces[:, ::-1], process=False)
+
+
+def phantom_plan(side: str = "right", target: Target = Target()) -> Plan:
+    """The built-in parametric tibia and fibula as a plan, with the default trocar pin; the
+    phantom is exact, so it carries no segmentation error."""
+    bone = build_phantom(side)
+    landmarks = Landmarks(bone.knee_centre, bone.ankle_centre, bone.anterior, side)
+    spec = PinSpec()
+    return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM",
+                segmentation_sd_mm=0.0)
+

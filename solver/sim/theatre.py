@@ -41,17 +41,18 @@ from pynetdicom.sop_class import (
     XRayAngiographicImageStorage,
 )
 
-from drivers.carm_sim import MotionScript, SimulatedCArm
-from drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles, initial_view_poses
-from solver.geometry import Pose, rotation_about
-from solver.imaging.xray import XRayParams, XRayScene, default_distortion, render_radiograph
-from solver.plan import Plan
-from solver.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.drivers.carm_sim import MotionScript, SimulatedCArm
+from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles, initial_view_poses
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.sim.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
 
-from .cases import case_id_of, run_id_of
-from .display import STATUS_SERIES
-from .frames import Frame, encode_frame
-from .plans import PlanStore
+from slamtka.service.cases import case_id_of, run_id_of
+from slamtka.service.display import STATUS_SERIES
+from slamtka.service.frames import Frame, encode_frame
+from slamtka.service.plans import PlanStore
+from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["ResultCollector", "TheatreCase", "Theatre", "PATIENT_ID", "CARM_AE", "DISPLAY_AE"]
 
@@ -154,7 +155,7 @@ class Theatre:
     # -- set-up ---------------------------------------------------------------------------
     def prepare(self) -> Path:
         """Plans folder (the phantom, precomputed once), calibration and configuration."""
-        from solver.imaging.calibration import write_calibration
+        from slamtka.solver.imaging.calibration import write_calibration
 
         self.root.mkdir(parents=True, exist_ok=True)
         store = PlanStore(self.root / "plans")
@@ -164,7 +165,7 @@ class Theatre:
             cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "slamtka"
             template = PlanStore(cache / "theatre-plans")
             if not template.folder(PATIENT_ID, "right").is_dir():
-                phantom = Plan.phantom("right")
+                phantom = phantom_plan("right")
                 phantom.patient_id = PATIENT_ID
                 template.add(phantom, {"landmarks": "given", "imported": "simulated theatre"})
             shutil.copytree(template.folder(PATIENT_ID, "right"), store.folder(PATIENT_ID, "right"))
@@ -231,7 +232,7 @@ port = {display_port}
         """The surgeon moves the pins: both turned by ``angle_deg`` about the anatomical
         ``axis`` ("ml": medio-lateral, changes STR; "ap": antero-posterior, changes CTR)
         through their midpoint; new views of the same study, the patient lying as before."""
-        from solver.measurement import fit_resection_plane
+        from slamtka.solver.measurement import fit_resection_plane
 
         lm = self.plan.landmarks
         T_tibia_anat = lm.T_tibia_anat()
@@ -287,9 +288,9 @@ port = {display_port}
 
     def start_service(self) -> None:
         """(Re)start ``slamtka serve`` with this theatre's configuration."""
-        with open(self.root / "service.log", "ab") as log:
+        with open(self.root / "slamtka.service.log", "ab") as log:
             self.service = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "serve", "--config", str(self.config)],
+                [sys.executable, "-m", "slamtka.service.cli", "serve", "--config", str(self.config)],
                 stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1", **self.environ})
         self._wait_for_service(60.0)
 
@@ -308,7 +309,7 @@ port = {display_port}
         while time.monotonic() < deadline:
             if self.service.poll() is not None:
                 raise RuntimeError(f"the service exited with {self.service.returncode}; see "
-                                   f"{self.root / 'service.log'}")
+                                   f"{self.root / 'slamtka.service.log'}")
             try:  # the port first, so that the C-ECHO below is not logged as a failure
                 socket.create_connection(("127.0.0.1", self.port), timeout=1.0).close()
             except OSError:

@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import generate_uid
 
-from solver.imaging.phantom import PhantomSpec, plate_offsets, simulate_phantom_set
-from solver.imaging.xray import default_distortion
-from solver.simulate import DETECTOR_FIELD_MM, SOURCE_TO_DETECTOR_MM, default_camera
+from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
+from slamtka.solver.imaging.plate import PhantomSpec
+from slamtka.sim.xray import default_distortion
+from slamtka.sim.simulate import DETECTOR_FIELD_MM, SOURCE_TO_DETECTOR_MM, default_camera
 
-from .frames import Frame, encode_frame
+from slamtka.service.frames import Frame, encode_frame
 
 __all__ = ["write_calibration_set", "PLATE_ERROR_MM"]
 

@@ -12,14 +12,14 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .anatomy import plane_normal_from_angles
-from .block import block_axes, bone_entry_mm, pin_pose
-from .camera import Camera
-from .geometry import Pose, look_at, rotation_about
-from .observations import ViewObservation
-from .plan import Plan
-from .silhouette import ContourGenerator
-from .slam import InitialGuess
+from slamtka.solver.anatomy import plane_normal_from_angles
+from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, look_at, rotation_about
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.silhouette import ContourGenerator
+from slamtka.solver.slam import InitialGuess
 
 __all__ = ["SimulationConfig", "SimulatedCase", "SimulationError", "simulate_case", "default_camera", "perturb",
            "segmentation_error"]

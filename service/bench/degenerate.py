@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from solver.degenerate import DEGENERATE_KINDS, degenerate_case
-from solver.plan import Plan
-from solver.slam import solve_joint
+from slamtka.sim.degenerate import DEGENERATE_KINDS, degenerate_case
+from slamtka.solver.plan import Plan
+from slamtka.solver.slam import solve_joint
+from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["add_degenerate_bench_parser"]
 
@@ -27,7 +28,7 @@ _plans: dict[str, Plan] = {}
 
 def _init_worker() -> None:
     for side in ("left", "right"):
-        _plans[side] = Plan.phantom(side)
+        _plans[side] = phantom_plan(side)
         _plans[side].bone_model()
         _plans[side].pin_model()
 

@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from solver.imaging.contours import ContourError, ExtractedContours, extract_contours
-from solver.imaging.operating_room import (
+from slamtka.solver.imaging.contours import ContourError, ExtractedContours, extract_contours
+from slamtka.sim.operating_room import (
     NUISANCES,
     OperatingRoom,
     RoomFrame,
@@ -39,18 +39,19 @@ from solver.imaging.operating_room import (
     room_scene,
     view_angles,
 )
-from solver.imaging.xray import XRayParams, XRayScene
-from solver.observations import ViewObservation
-from solver.plan import Plan
-from solver.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
-from solver.slam import SolverConfig, solve_joint
+from slamtka.sim.xray import XRayParams, XRayScene
+from slamtka.solver.observations import ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
+from slamtka.solver.slam import SolverConfig, solve_joint
 
-from .bench_args import names_from
-from .bench_imaging import COVERED_PX, contour_scores
+from slamtka.bench.args import names_from
+from slamtka.bench.imaging import COVERED_PX, contour_scores
+from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["add_realism_bench_parser", "run_realism", "realism_case", "SHARED_DATA"]
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 SUCCESS_DEG = 1.0
 _DEFAULT_VIEWS = (-30.0, 30.0)
 
@@ -61,12 +62,12 @@ _xray_scenes: dict[str, XRayScene] = {}
 def _plan(model: str, data: Path) -> Plan:
     if model not in _plans:
         if model == "phantom":
-            plan = Plan.phantom("right")
+            plan = phantom_plan("right")
         else:
             # The shared fibula is not a closed surface, which X-ray path lengths need: the
             # real model is its tibia alone (the plan as the frames: no fibula in either).
             smith = data / "knee-smith2019"
-            landmarks = Path(__file__).resolve().parents[1] / "tests" / "data" / "knee-smith2019-landmarks.json"
+            landmarks = Path(__file__).resolve().parents[2] / "tests" / "data" / "knee-smith2019-landmarks.json"
             plan = Plan.from_meshes(smith / "tibia-right.stl", None, landmarks)
         plan.bone_model()
         plan.pin_model()

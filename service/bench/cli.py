@@ -21,24 +21,25 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.bench_link import add_link_bench
-from service.bench_args import names_from
-from service.bench_degenerate import add_degenerate_bench_parser
-from service.bench_hardening import add_hardening_bench_parser
-from service.bench_imaging import add_imaging_bench_parser
-from service.bench_realism import add_realism_bench_parser
-from service.bench_service import add_service_bench_parser
-from service.bench_speed import add_speed_bench_parser
-from service.bench_workflow import add_workflow_bench_parser
-from solver.plan import Plan
-from solver.simulate import (
+from slamtka.bench.link import add_link_bench
+from slamtka.bench.args import names_from
+from slamtka.bench.degenerate import add_degenerate_bench_parser
+from slamtka.bench.hardening import add_hardening_bench_parser
+from slamtka.bench.imaging import add_imaging_bench_parser
+from slamtka.bench.realism import add_realism_bench_parser
+from slamtka.bench.service import add_service_bench_parser
+from slamtka.bench.speed import add_speed_bench_parser
+from slamtka.bench.workflow import add_workflow_bench_parser
+from slamtka.solver.plan import Plan
+from slamtka.sim.simulate import (
     ROT_SD_PER_LEVEL_RAD,
     TRANS_SD_PER_LEVEL_MM,
     SimulationConfig,
     SimulationError,
     simulate_case,
 )
-from solver.slam import METHODS, SolverConfig, solve_joint
+from slamtka.solver.slam import METHODS, SolverConfig, solve_joint
+from slamtka.sim.bone_phantom import phantom_plan
 
 SUCCESS_DEG = 1.0
 
@@ -50,7 +51,7 @@ def _init_worker(tibia: Path | None, fibula: Path | None, landmarks: Path | None
     """The study's plan, which states the segmentation error the study simulates (none in
     the paper's protocol, where the mesh is the bone), as a plan from CT would."""
     global _worker_plan
-    _worker_plan = Plan.phantom() if tibia is None else Plan.from_meshes(tibia, fibula, landmarks)
+    _worker_plan = phantom_plan() if tibia is None else Plan.from_meshes(tibia, fibula, landmarks)
     _worker_plan.segmentation_sd_mm = segmentation_mm
     _worker_plan.bone_model()
     _worker_plan.pin_model()

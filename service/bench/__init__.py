@@ -1,0 +1,1 @@
+"""slamtka.bench: tooling, not part of the product."""

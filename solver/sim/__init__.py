@@ -1,0 +1,1 @@
+"""slamtka.sim: tooling, not part of the product."""
