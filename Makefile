@@ -1,4 +1,5 @@
-# Two entry points a fresh machine needs: `make demo` and `make test`.
+# Two entry points a fresh machine needs: `make demo` and `make test` (the fast tier).
+# CI (.ci/run) also runs `make lint` and `make test-system` (real service, studies in small).
 # Supply chain (needs PyPI, never part of `make test`): `make lock`, `make sbom`, `make audit`.
 PYTHON ?= python3
 VENV := .venv
@@ -12,7 +13,7 @@ SBOM := build/slamtka-sbom.cdx.json
 # Debian tools the tests use as independent clients and validators (DCMTK, dicom3tools).
 SYSTEM_TOOLS := storescu echoscu dsrdump dciodvfy
 
-.PHONY: demo test bench clean lock sbom audit
+.PHONY: demo test test-system lint typecheck bench clean lock sbom audit
 
 $(STAMP): pyproject.toml $(LOCK)
 	@missing=""; for t in $(SYSTEM_TOOLS); do command -v $$t >/dev/null || missing=1; done; \
@@ -22,14 +23,30 @@ $(STAMP): pyproject.toml $(LOCK)
 	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet --constraint $(LOCK) -e '.[test]'
+	$(BIN)/pip install --quiet --constraint $(LOCK) -e '.[test,lint]'
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/slamtka theatre
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q
+	$(BIN)/python -m pytest -n 2 -q -m "not system and not slow"
+
+test-system: $(STAMP)
+	$(BIN)/python -m pytest -n 2 -q -m "system and not slow"
+
+# mypy cannot follow setuptools' package-dir mapping, so it reads the `slamtka` namespace
+# through a tree of links to the repository's folders.
+TYPECHECK := build/typecheck
+typecheck: $(STAMP)
+	@rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/slamtka
+	@for p in service solver drivers; do ln -s ../../../$$p $(TYPECHECK)/slamtka/$$p; done
+	@ln -s ../../../solver/sim $(TYPECHECK)/slamtka/sim && ln -s ../../../service/bench $(TYPECHECK)/slamtka/bench
+	cd $(TYPECHECK) && ../../$(BIN)/mypy --config-file ../../pyproject.toml -p slamtka \
+	  --exclude 'slamtka/(service/bench|solver/sim)/'
+
+lint: $(STAMP) typecheck
+	$(BIN)/ruff check service solver drivers tests
 
 bench: $(STAMP)
 	$(BIN)/slamtka bench accuracy --runs 20 --levels 1 --out bench-out/accuracy

@@ -1,4 +1,6 @@
-"""Shared fixtures: models are expensive (signed distance fields), so build them once."""
+"""Shared fixtures (models are expensive: signed distance fields, so built once) and the two
+tiers: `make test` runs the fast one; the modules below, which run the real service end to
+end or a study in small, and tests marked ``system`` form the second (`make test-system`)."""
 
 from __future__ import annotations
 
@@ -47,3 +49,18 @@ def real_plan() -> Plan:
     plan.bone_model()
     plan.pin_model()
     return plan
+
+
+SYSTEM_MODULES = frozenset({
+    "test_calibration", "test_cli", "test_degenerate", "test_imaging_chain", "test_imaging_realism",
+    "test_link_sim", "test_measure", "test_service_bench_network", "test_service_e2e",
+    "test_service_faults", "test_service_hardening", "test_service_loop", "test_service_plans",
+    "test_service_workflow_e2e",
+})
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.stem in SYSTEM_MODULES:
+            item.add_marker(pytest.mark.system)
+

@@ -25,7 +25,6 @@ from slamtka.solver.case import load_case, write_case
 from slamtka.solver.geometry import Pose
 from slamtka.solver.imaging.calibration import CalibrationError, _digest, load_calibration, write_calibration
 from slamtka.solver.observations import ViewObservation
-from slamtka.solver.plan import Plan
 from slamtka.sim.simulate import default_camera
 from slamtka.solver.slam import InitialGuess
 from slamtka.sim.bone_phantom import phantom_plan

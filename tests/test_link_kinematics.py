@@ -92,6 +92,7 @@ def test_default_joints_look_antero_posterior_at_the_knee(landmarks):
     assert dicom_angles(KIN, JointReading(**REST), setup) == pytest.approx((0.0, 0.0), abs=1e-9)
 
 
+@pytest.mark.system
 def test_relative_covariance_matches_sampled_joint_noise(landmarks):
     setup = PatientSetup(landmarks.T_tibia_anat())
     views = [JointReading(orbital_deg=-25, angulation_deg=5, **REST),

@@ -12,7 +12,7 @@ from slamtka.service.frames import encode_frame
 from slamtka.service.poses import ViewGeometry, planned_pins, positioner_T_anat_cam
 from slamtka.service.spool import Spool
 from slamtka.solver.measurement import fit_resection_plane
-from slamtka.solver.plan import Plan, Target
+from slamtka.solver.plan import Target
 from slamtka.sim.bone_phantom import phantom_plan
 from service_testing import small_frame
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from slamtka.solver.optimizer import IterationInfo, State
-from slamtka.solver.plan import Plan
 
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.replay import check_recording, read_recording

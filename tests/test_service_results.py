@@ -15,7 +15,7 @@ import pytest
 from pydicom.uid import generate_uid
 
 from slamtka.solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
-from slamtka.solver.plan import Plan, Target
+from slamtka.solver.plan import Target
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.slam import InitialGuess, SolveOutcome
 

@@ -111,6 +111,7 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
     assert np.linalg.norm(observed - expected) < 0.01 * np.linalg.norm(expected)
 
 
+@pytest.mark.system
 def test_a_plan_segmentation_error_widens_the_uncertainty_not_the_answer(phantom_plan):
     """The same solve with the plan stating a 0.5 mm segmentation error: identical angles,
     a sigma at least twice as wide (a shared error does not average away over the points)."""
@@ -248,6 +249,7 @@ def test_a_callback_may_end_a_stage_as_converged(real_plan):
     assert stages[-1].startswith("joint") and len(stages) == outcome.iterations
 
 
+@pytest.mark.system
 def test_seating_finds_the_least_distance_along_each_ray(real_plan):
     """Seated points match a dense search of each ray over the whole depth range, for rays
     that graze, cut into or miss the bone, and for a ray that misses the field's box."""
@@ -307,6 +309,7 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
 
 
+@pytest.mark.system
 @pytest.mark.parametrize("method", [m for m in METHODS if m != "slam"])
 def test_every_baseline_answers_with_its_own_energy(real_plan, method):
     """Each baseline measures this case, near the truth (the split back-projection leaves
@@ -390,6 +393,7 @@ def _with_stray_bone_pixels(case, fraction: float, seed: int) -> tuple[list[View
     return views, in_place, strays
 
 
+@pytest.mark.system
 def test_stray_bone_contour_points_get_no_edge_points(phantom_plan):
     """Bone contour pixels whose rays miss the bone by more than 3 mm at the seating poses
     get no edge point (every true one keeps its own); with 6% of them moved the solve still
@@ -434,6 +438,7 @@ def test_a_bone_contour_that_mostly_misses_the_bone_is_refused(phantom_plan):
     assert reason is not None and "bone contour of view" in reason and "lie more than 3 mm off" in reason
 
 
+@pytest.mark.system
 def test_pin_contours_that_disagree_send_the_solve_to_the_global_search(real_plan):
     """Study case (real tibia, level 2, seed 2040, without the encoder factor): the first
     solve left a view 3 deg off and fitted the pins between the views, their edge points
@@ -445,6 +450,7 @@ def test_pin_contours_that_disagree_send_the_solve_to_the_global_search(real_pla
     assert max(_errors(case, outcome)) < 0.2
 
 
+@pytest.mark.system
 def test_pin_points_slid_along_their_rays_send_the_solve_to_the_global_search(phantom_plan):
     """Study case (phantom, level 2, seed 7207): with the edge points seated twice only (as
     the solver once did), the first solve left view 2 1.1 deg and 4 mm off, its pin edge
@@ -457,6 +463,7 @@ def test_pin_points_slid_along_their_rays_send_the_solve_to_the_global_search(ph
     assert max(_errors(case, outcome)) < 0.2
 
 
+@pytest.mark.system
 def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan):
     """Study case (phantom, level 2, seed 11): the coarse stages leave view 1 1.5 deg off.
     Seated twice, the joint stage stops 0.7 deg short (each seating holds the points at
@@ -490,6 +497,7 @@ def test_pins_that_are_not_parallel_are_named(phantom_plan):
     assert reason is not None and "5.0 deg from parallel" in reason
 
 
+@pytest.mark.system
 def test_pins_far_from_parallel_send_the_solve_to_the_global_search(real_plan):
     """Study case (real tibia, level 2, seed 2073, without the encoder factor): the coarse
     stages left view 2 8 deg off and turned pin 2 31 deg, a tenth of its outline 40 px off
@@ -502,6 +510,7 @@ def test_pins_far_from_parallel_send_the_solve_to_the_global_search(real_plan):
     assert max(_errors(case, outcome)) < 0.2
 
 
+@pytest.mark.system
 def test_a_pin_partly_off_its_contour_sends_the_solve_to_the_global_search(real_plan):
     """Study case (real tibia, level 4, seed 4026): the first solve put pin 2 where half its
     outline lies on its contour and the rest 100-250 px away, with the outlines' median
@@ -532,6 +541,7 @@ def _left_after_search(plan, case, initial: list[Pose], search) -> tuple[float, 
                                            search))
 
 
+@pytest.mark.system
 def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     """Tens of degrees and tens of millimetres of patient set-up error, shared by both
     views, come back to a few degrees and millimetres: a start local solving can finish."""
@@ -549,6 +559,7 @@ def test_global_setup_search_recovers_a_large_set_up_error(phantom_plan):
     assert rotation_deg < 8.0 and translation_mm < 6.0
 
 
+@pytest.mark.system
 @pytest.mark.parametrize("level, seed", [(4, 4001), (5, 5099)])
 def test_wide_setup_search_recovers_study_cases_it_used_to_miss(phantom_plan, level, seed):
     """Two study cases the +-60 deg search used to miss (both then refused):
@@ -592,6 +603,7 @@ def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_
     assert not np.array_equal(plain.views[0].contours["bone"], mismatched.views[0].contours["bone"])
 
 
+@pytest.mark.system
 def test_views_that_disagree_with_the_encoders_motion_are_refused(phantom_plan):
     """A solve whose views moved otherwise than the encoders measured (here the encoders
     are told 6 deg wrong, 12 sigma) fits the contours, but not the C-arm's motion: the E_odo

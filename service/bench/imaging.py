@@ -46,7 +46,6 @@ from slamtka.sim.plate_images import (
 from slamtka.solver.imaging.plate import PhantomSpec
 from slamtka.sim.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
 from slamtka.solver.observations import ViewObservation
-from slamtka.solver.plan import Plan
 from slamtka.sim.simulate import (
     DETECTOR_FIELD_MM,
     ROT_SD_PER_LEVEL_RAD,
