@@ -28,14 +28,17 @@ from slamtka.solver.observations import LABELS, ViewObservation
 from slamtka.solver.plan import Plan
 from slamtka.solver.slam import InitialGuess
 
-__all__ = ["Case", "CASE_FORMAT", "load_case", "write_case"]
+__all__ = ["CaseFolder", "CASE_FORMAT", "load_case", "write_case"]
 
 CASE_FORMAT = "slamtka-case/1"
 CONTOURS_FORMAT = "slamtka-contours/1"
 
 
 @dataclass
-class Case:
+class CaseFolder:
+    """A case read from its folder (plan, views, initial poses): what `slamtka solve` measures;
+    the service's cases being assembled from DICOM frames are :class:`slamtka.service.cases.Case`."""
+
     folder: Path
     case_id: str
     plan: Plan
@@ -138,7 +141,7 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
     (folder / "case.json").write_text(json.dumps(manifest, indent=2))
 
 
-def load_case(folder: Path) -> Case:
+def load_case(folder: Path) -> CaseFolder:
     folder = Path(folder)
     manifest = read_json_object(folder / "case.json")
     if manifest.get("format") != CASE_FORMAT:
@@ -181,6 +184,6 @@ def load_case(folder: Path) -> Case:
     pins = [_pose(initial_path, f"pin {k + 1}", p) for k, p in enumerate(pin_docs)]
     if len(pins) != 2:
         raise ValueError(f"{initial_path}: must give exactly two pin poses, found {len(pins)}")
-    return Case(folder, str(manifest.get("case_id", folder.name)), plan, views,
+    return CaseFolder(folder, str(manifest.get("case_id", folder.name)), plan, views,
                 InitialGuess(tuple(poses), (pins[0], pins[1]), _odometry_sigma(initial_doc)),
                 calibration_id)
