@@ -54,7 +54,7 @@ def _instructions(text: str) -> list[tuple[str, str]]:
 
 def _names(requirements: list[str]) -> set[str]:
     """Distribution names, normalised (PEP 503), of requirement lines or specifiers."""
-    return {re.sub(r"[-_.]+", "-", re.split(r"[<>=!~\[ ;]", r.strip(), 1)[0]).lower()
+    return {re.sub(r"[-_.]+", "-", re.split(r"[<>=!~\[ ;]", r.strip(), maxsplit=1)[0]).lower()
             for r in requirements if r.strip() and not r.startswith("#")}
 
 

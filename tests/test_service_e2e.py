@@ -80,7 +80,7 @@ def test_a_surgery_end_to_end(theatre, capsys):
     assert abs(doc["angles"]["ctr_deg"] - case.truth_ctr_deg) < 1.0
     assert abs(doc["angles"]["str_deg"] - case.truth_str_deg) < 1.0
     assert [s["sop_instance_uid"] for s in doc["sources"]] == [f.sop_instance_uid for f in case.frames]
-    for source, frame in zip(doc["sources"], case.frames):
+    for source in doc["sources"]:
         assert source["initialisation"] == "encoders" and source["contours"] == "extracted"
         assert source["encoder_reading"]["joints"]["orbital"] == pytest.approx(
             th.script.views[int(source["view_id"][-1]) - 1].orbital_deg, abs=0.01)

@@ -207,7 +207,7 @@ def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
             per_life = max(1, 2 * stores // max(kills, 1))
             for _ in range(kills):
                 target = int(moments.integers(0, per_life + 1))
-                _wait(lambda: since_restart[0] >= target or not sending.is_set(), 600.0, 0.005)
+                _wait(lambda target=target: since_restart[0] >= target or not sending.is_set(), 600.0, 0.005)
                 time.sleep(float(moments.uniform(0.0, 0.2 if sending.is_set() else 1.5)))
                 theatre.stop_service(kill=True)
                 killed.append(time.monotonic())
@@ -415,12 +415,13 @@ def _malformed_inputs(seed: int) -> Iterator[tuple[str, Callable[[RawAssociation
         pixel = pixel_length_cases(data, True)[int(rng.integers(0, 7))][1]
         length = element_length_cases(data, True)[int(rng.integers(0, 6))][1]
         _, pdu, _ = next(malformed_pdus(1, int(rng.integers(1 << 30)), CARM_AE, SERVICE_AE))
-        yield "truncated", lambda a: a.store(data[:cut], uid)
-        yield "path in the UID", lambda a: a.store(with_uid(data, "../../../../tmp/x", True),
-                                                   "../../../../tmp/x")
-        yield "pixel data length", lambda a: a.store(pixel, uid)
-        yield "element length", lambda a: a.store(length, uid)
-        yield "malformed PDU", lambda a: (a.send(pdu), a.read_pdu(), 0x0000)[-1]
+        # Each input binds its own values: a consumer may hold several before calling them.
+        yield "truncated", lambda a, data=data, cut=cut, uid=uid: a.store(data[:cut], uid)
+        yield "path in the UID", lambda a, data=data: a.store(
+            with_uid(data, "../../../../tmp/x", True), "../../../../tmp/x")
+        yield "pixel data length", lambda a, pixel=pixel, uid=uid: a.store(pixel, uid)
+        yield "element length", lambda a, length=length, uid=uid: a.store(length, uid)
+        yield "malformed PDU", lambda a, pdu=pdu: (a.send(pdu), a.read_pdu(), 0x0000)[-1]
 
 
 def _sample(proc: psutil.Process, started: float) -> dict:

@@ -97,7 +97,7 @@ def _repin_rows(theatre: Theatre, case: TheatreCase,
         theatre.acquire(placed)
         status = _wait_status(theatre, case.study_uid, sent, timeout=10.0)
         found = theatre.display.wait(
-            lambda ds: ds.Modality == "SR" and ds.SeriesDescription != STATUS_SERIES
+            lambda ds, in_set=in_set: ds.Modality == "SR" and ds.SeriesDescription != STATUS_SERIES
             and ds.StudyInstanceUID == case.study_uid and _evidence(ds) == in_set, 60.0)
         arrived, angles = (found[0][0], _angles_from_sr(found[0][1])) if found else (
             None, {"status": "no report"})
