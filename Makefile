@@ -42,7 +42,7 @@ typecheck: $(STAMP)
 	@rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/slamtka
 	@for p in service solver drivers; do ln -s ../../../$$p $(TYPECHECK)/slamtka/$$p; done
 	@ln -s ../../../solver/sim $(TYPECHECK)/slamtka/sim && ln -s ../../../service/bench $(TYPECHECK)/slamtka/bench
-	cd $(TYPECHECK) && ../../$(BIN)/mypy --config-file ../../pyproject.toml -p slamtka \
+	cd $(TYPECHECK) && $(abspath $(BIN))/mypy --config-file $(abspath pyproject.toml) -p slamtka \
 	  --exclude 'slamtka/(service/bench|solver/sim)/'
 
 lint: $(STAMP) typecheck
