@@ -202,6 +202,9 @@ manual_contours_dir = "contours"
 [sender]
 retry_initial_s = 0.5
 
+[health]
+http_port = 0  # any free port: theatres run side by side
+
 [[destinations]]
 name = "or-display"
 ae_title = "{DISPLAY_AE}"
