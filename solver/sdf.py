@@ -34,11 +34,14 @@ _CACHE_VERSION = 1
 # interpolated from a grid this many times coarser (its sign and slope are all that matter).
 _BAND_VOXELS = 6
 _COARSE_FACTOR = 4
-# Largest grid built. Building peaks at about 300 bytes per voxel (1.1 GB for the phantom's
-# 3.1 million voxels: tibia with fibula at 1 mm); the knee-smith2019 meshes need 0.8 million
-# and a large full-length leg about 6 million. 12 million (about 4 GB) leaves that margin while
-# refusing meshes far apart or in the wrong units, which would exhaust the memory.
+# Largest grid built (4 bytes per voxel, sampled in slabs): the phantom's tibia with fibula at
+# 1 mm needs 3.1 million voxels, the knee-smith2019 meshes 0.8 million and a large
+# full-length leg about 6 million. 12 million leaves that margin while refusing meshes far
+# apart or in the wrong units.
 MAX_GRID_VOXELS = 12_000_000
+# Grid points sampled at once while building: bounds the build's peak memory (libigl's
+# outputs take about 300 bytes per point) to some 80 MB over the grid itself.
+_SLAB_POINTS = 262_144
 
 
 def mesh_digest(meshes: list[trimesh.Trimesh]) -> str:
@@ -91,7 +94,11 @@ class SignedDistanceField:
     def build(
         meshes: list[trimesh.Trimesh], spacing_mm: float, margin_mm: float
     ) -> SignedDistanceField:
-        """Sample the field of the union of ``meshes`` over their bounds plus ``margin_mm``."""
+        """Sample the field of the union of ``meshes`` over their bounds plus ``margin_mm``.
+
+        The grid is sampled a slab of x-planes at a time (``_SLAB_POINTS``): libigl's
+        per-point outputs (closest points, normals) and the points themselves would
+        otherwise take about 300 bytes per voxel at once (1.1 GB for the phantom)."""
         lo = np.min([m.bounds[0] for m in meshes], axis=0) - margin_mm
         hi = np.max([m.bounds[1] for m in meshes], axis=0) + margin_mm
         shape = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
@@ -105,18 +112,27 @@ class SignedDistanceField:
         coarse = SignedDistanceField._sample(meshes, lo, spacing_mm * _COARSE_FACTOR,
                                              shape // _COARSE_FACTOR + 2, band_mm=None)
         fine = SignedDistanceField._sample(meshes, lo, spacing_mm, shape,
-                                           band_mm=_BAND_VOXELS * spacing_mm)
-        far = np.isnan(fine.values)
-        values = fine.values.copy()
-        if far.any():  # a small model's band may cover the whole grid
-            values[far] = coarse.query(fine.grid_points()[far.ravel()])[0]
-        return SignedDistanceField(lo, spacing_mm, values.astype(np.float32), mesh_digest(meshes))
+                                           band_mm=_BAND_VOXELS * spacing_mm, far_field=coarse)
+        return SignedDistanceField(lo, spacing_mm, fine.values, mesh_digest(meshes))
 
     @staticmethod
-    def _sample(meshes, origin, spacing, shape, band_mm) -> SignedDistanceField:
+    def _sample(meshes: list[trimesh.Trimesh], origin: np.ndarray, spacing: float,
+                shape: np.ndarray, band_mm: float | None,
+                far_field: SignedDistanceField | None = None) -> SignedDistanceField:
+        """Exact distances on the grid, slab by slab; beyond ``band_mm`` NaN, or the value
+        interpolated from ``far_field`` when given (its sign and slope are all that matter)."""
         field = SignedDistanceField(origin, spacing, np.zeros(tuple(shape), np.float32), "")
-        values = _exact_signed_distance(field.grid_points(), meshes, band_mm)
-        return SignedDistanceField(origin, spacing, values.reshape(tuple(shape)), "")
+        plane = int(shape[1]) * int(shape[2])
+        step = max(1, _SLAB_POINTS // plane)
+        for first in range(0, int(shape[0]), step):
+            planes = slice(first, min(first + step, int(shape[0])))
+            points = field.grid_points(planes)
+            values = _exact_signed_distance(points, meshes, band_mm)
+            far = np.isnan(values)
+            if far_field is not None and far.any():
+                values[far] = far_field.query(points[far], gradient=False)[0]
+            field.values[planes] = values.reshape((-1,) + tuple(shape[1:]))
+        return field
 
     @staticmethod
     def cached(
@@ -143,8 +159,10 @@ class SignedDistanceField:
         """(2, 3) lower and upper corners of the sampled box, model frame, mm."""
         return np.vstack([self.origin, self.origin + self.spacing * (np.array(self.values.shape) - 1)])
 
-    def grid_points(self) -> np.ndarray:
+    def grid_points(self, planes: slice = slice(None)) -> np.ndarray:
+        """Model-frame points (N, 3) of the grid's x-planes ``planes``, in ``values`` order."""
         axes = [self.origin[a] + self.spacing * np.arange(n) for a, n in enumerate(self.values.shape)]
+        axes[0] = axes[0][planes]
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
     def save(self, path: Path) -> None:
@@ -156,7 +174,8 @@ class SignedDistanceField:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".npz")
         try:
             with os.fdopen(fd, "wb") as stream:
-                np.savez_compressed(stream, origin=self.origin, spacing=self.spacing,
+                # Uncompressed: zlib saved 15% of the size and cost ~100 ms per load.
+                np.savez(stream, origin=self.origin, spacing=self.spacing,
                                     values=self.values, digest=np.array(self.digest))
             os.replace(tmp, path)
         except BaseException:

@@ -132,3 +132,24 @@ def test_footprint_is_the_union_of_front_faces(open_mesh):
     found = mask[pixels[:, 1], pixels[:, 0]] == 1
     assert expected.sum() > 1000
     assert np.mean(found == expected) > 0.995  # pixel centres exactly on an edge may go either way
+
+
+def test_sdf_is_built_in_bounded_slabs_with_the_same_values(monkeypatch):
+    """Building samples a bounded number of grid points at once (the build's peak memory),
+    and the slabs add up to the field of one pass over the grid."""
+    import solver.sdf as sdf_module
+
+    pin = build_pin()
+    whole = SignedDistanceField.build([pin], 0.2, 1.6)
+    sampled: list[int] = []
+    exact = sdf_module._exact_signed_distance
+
+    def spy(points, meshes, band_mm):
+        sampled.append(len(points))
+        return exact(points, meshes, band_mm)
+
+    monkeypatch.setattr(sdf_module, "_exact_signed_distance", spy)
+    monkeypatch.setattr(sdf_module, "_SLAB_POINTS", 20_000)
+    slabbed = SignedDistanceField.build([pin], 0.2, 1.6)
+    assert whole.values.size > 10 * 20_000 and max(sampled) <= 20_000
+    np.testing.assert_allclose(slabbed.values, whole.values, atol=1e-5)
