@@ -9,8 +9,10 @@ project onto the boundary of the model's projected footprint.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,8 +20,11 @@ import trimesh
 
 from .camera import Camera
 from .geometry import Pose, box_corners, row_norms
+from .sdf import UNREADABLE_CACHE, mesh_digest, write_arrays
 
-__all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
+__all__ = ["ContourGenerator", "INTERIOR_REUSE_PX", "simplified"]
+
+log = logging.getLogger(__name__)
 
 # Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution.
 _MASK_DOWNSCALE = 4
@@ -32,6 +37,27 @@ def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For consecutive runs of ``counts`` elements: each element's run and its place in it."""
     owner = np.repeat(np.arange(len(counts)), counts)
     return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def simplified(mesh: trimesh.Trimesh, max_faces: int, cache_dir: Path | None) -> trimesh.Trimesh:
+    """``mesh`` decimated to at most ``max_faces`` faces (itself when it has no more),
+    cached in ``cache_dir`` keyed by its hash: decimating a bone takes ~70 ms, which a
+    plan's load in the operating room should not pay."""
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"simplified-{mesh_digest([mesh])[:24]}-{max_faces}.npz"
+        if path.exists():
+            try:
+                with np.load(path) as data:
+                    return trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+            except UNREADABLE_CACHE as exc:
+                log.warning("%s: unreadable cached mesh (%s); simplifying again", path, exc)
+    light = mesh.simplify_quadric_decimation(face_count=max_faces)
+    if path is not None:
+        write_arrays(path, vertices=np.asarray(light.vertices), faces=np.asarray(light.faces))
+    return light
 
 
 @dataclass(frozen=True)

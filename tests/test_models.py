@@ -153,3 +153,21 @@ def test_sdf_is_built_in_bounded_slabs_with_the_same_values(monkeypatch):
     slabbed = SignedDistanceField.build([pin], 0.2, 1.6)
     assert whole.values.size > 10 * 20_000 and max(sampled) <= 20_000
     np.testing.assert_allclose(slabbed.values, whole.values, atol=1e-5)
+
+
+def test_simplified_silhouette_mesh_is_cached_beside_the_plan(tmp_path, monkeypatch):
+    """A plan's load in the operating room reads its simplified meshes, never decimates."""
+    from solver.silhouette import simplified
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
+    light = simplified(sphere, 1000, tmp_path)
+    assert len(light.faces) <= 1000 and len(list(tmp_path.glob("simplified-*.npz"))) == 1
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("decimated again although the plan's cache holds the mesh")
+
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", refuse)
+    again = simplified(sphere, 1000, tmp_path)
+    np.testing.assert_array_equal(again.faces, light.faces)
+    np.testing.assert_allclose(again.vertices, light.vertices)
+    assert simplified(sphere, 6000, tmp_path) is sphere  # small enough already
