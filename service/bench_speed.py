@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from solver import kernels
 from solver.plan import Plan
 from solver.simulate import SimulationConfig, simulate_case
 from solver.slam import SolverConfig, solve_joint
@@ -83,6 +84,7 @@ def run_speed(args: argparse.Namespace) -> int:
                                                                       args.landmarks)
     plan.bone_model()
     plan.pin_model()
+    kernels.warm_up()  # as the service does at its start
     runs = [_timed_solve(plan, args.seed + i, args.level) for i in range(args.cases)]
     peak_mb = _peak_allocation_mb(plan, args.seed, args.level)
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["schur_complement"]
+__all__ = ["schur_complement", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -76,3 +76,10 @@ def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: 
                         blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
                                                  + Y[a, r, 2] * W[x, b, c, 2])
     return blocks, shift, V_inv
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel now, on a tiny problem: the first
+    compilation takes about two seconds, which no case in the operating room should wait."""
+    schur_complement(np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 1, 6, 3)),
+                     np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
