@@ -22,7 +22,7 @@ import igl
 import numpy as np
 import trimesh
 
-from .geometry import row_norms
+from .kernels import trilinear
 
 __all__ = ["SignedDistanceField", "mesh_digest", "write_arrays", "UNREADABLE_CACHE", "MAX_GRID_VOXELS"]
 
@@ -204,44 +204,6 @@ class SignedDistanceField:
         true distance) and the gradient points back towards the grid, so far-away points are
         still pulled towards the model.
         """
-        shape = np.array(self.values.shape)
-        g = (np.asarray(points, float) - self.origin) / self.spacing
-        upper = shape - 1 - 1e-9
-        g_clamped = np.clip(g, 0.0, upper)
-        i0 = np.floor(g_clamped).astype(np.int64)
-        f = g_clamped - i0
-        _, ny, nz = self.values.shape
-        flat = self.values.ravel()
-        base = (i0[:, 0] * ny + i0[:, 1]) * nz + i0[:, 2]
-        # The eight cell corners (8, N), (x, y, z) offsets 0/1 in binary order: corner[4a +
-        # 2b + c], gathered at once; the interpolation then runs on pairs of rows (z-pairs,
-        # then y-pairs) rather than on each corner.
-        offsets = np.array([(a * ny + b) * nz + c for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        corner = flat.take(offsets[:, None] + base).astype(float)
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        # Interpolate along z, then y, then x, keeping the partial derivatives exact.
-        dz = corner[1::2] - corner[0::2]
-        cz = corner[0::2] + dz * fz  # c00, c01, c10, c11
-        dy = cz[1::2] - cz[0::2]
-        cy = cz[0::2] + dy * fy  # c0, c1
-        dx = cy[1] - cy[0]
-        value = cy[0] + dx * fx
-        beyond = g.min() < 0 or np.any(g.max(axis=0) > upper)
-        if beyond:
-            outside = (g - g_clamped) * self.spacing
-            dist_out = row_norms(outside)
-            value = value + dist_out
-        if not gradient:
-            return value, None
-        # d/dy and d/dz on the cell's two x faces (x = 0, 1), then blended along x.
-        slopes = np.concatenate([dy, dz[0::2] + (dz[1::2] - dz[0::2]) * fy])
-        grad = np.empty((3, len(value)))
-        grad[0] = dx
-        grad[1:] = slopes[0::2] * (1 - fx) + slopes[1::2] * fx
-        grad = grad.T / self.spacing
-        if beyond:
-            far = dist_out > 0
-            # Clamped axes no longer move the interpolant; the distance outside takes over.
-            grad[outside != 0] = 0.0
-            grad[far] += outside[far] / dist_out[far, None]
-        return value, grad
+        value, grad = trilinear(self.values, np.asarray(self.origin, float), float(self.spacing),
+                                np.ascontiguousarray(points, dtype=float).reshape(-1, 3), gradient)
+        return value, (grad if gradient else None)
