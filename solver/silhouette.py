@@ -20,6 +20,7 @@ import trimesh
 
 from .camera import Camera
 from .geometry import Pose, box_corners, row_norms
+from .kernels import footprint_mask
 from .sdf import UNREADABLE_CACHE, mesh_digest, write_arrays
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX", "simplified"]
@@ -135,41 +136,8 @@ class ContourGenerator:
         # less than finding the distinct ones.
         uv = (camera.project(T_cam_model.apply(self.vertices[edges.reshape(-1)])) / downscale
               ).reshape(-1, 2, 2)
-        a, b = uv[:, 0], uv[:, 1]
-        uv = uv.reshape(-1, 2)
-        # Only the outline's bounding box (within the image) is accumulated: outside it no
-        # row is crossed, and left of every crossing the winding number is zero.
-        (left, upper), (right, lower) = (np.clip(np.ceil(uv.min(axis=0)), 0, [width, height]),
-                                         np.clip(np.ceil(uv.max(axis=0)), 0, [width, height]))
-        left, upper, right, lower = int(left), int(upper), int(right), int(lower)
-        # Each edge crosses the rows whose centre lies in [top, bottom) of its span.
-        downwards = b[:, 1] > a[:, 1]
-        top = np.where(downwards[:, None], a, b)
-        bottom = np.where(downwards[:, None], b, a)
-        first_row = np.clip(np.ceil(top[:, 1]), 0, height).astype(np.int64)
-        rows_crossed = np.clip(np.ceil(bottom[:, 1]), 0, height).astype(np.int64) - first_row
-        edge, place = _runs(rows_crossed)
-        row = first_row[edge] + place - upper
-        fraction = (row + upper - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
-        x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
-        column = np.clip(np.ceil(x), left, right).astype(np.int64) - left
-        box_h, box_w = lower - upper, right - left
-        crossings = np.bincount(row * (box_w + 1) + column,
-                                weights=np.where(downwards, 1.0, -1.0)[edge],
-                                minlength=box_h * (box_w + 1)).reshape(box_h, box_w + 1)
-        mask = np.zeros((height, width), np.uint8)
-        mask[upper:lower, left:right] = np.abs(np.cumsum(crossings, axis=1)[:, :box_w]) > 0.5
-        # Pixels the outline passes through belong to the footprint too, as when faces are
-        # filled with their edges drawn: an outline point always falls in a footprint pixel.
-        delta = b - a
-        steps = np.ceil(np.max(np.abs(delta), axis=1)).astype(np.int64) + 1
-        along, place = _runs(steps)
-        s = place / (steps[along] - 1).clip(1)
-        on_outline = np.round(a[along] + s[:, None] * delta[along]).astype(np.int64)
-        inside = ((on_outline[:, 0] >= 0) & (on_outline[:, 0] < width)
-                  & (on_outline[:, 1] >= 0) & (on_outline[:, 1] < height))
-        mask[on_outline[inside, 1], on_outline[inside, 0]] = 1
-        return mask
+        return footprint_mask(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]),
+                              height, width)
 
     @cached_property
     def bounding_box_corners(self) -> np.ndarray:
