@@ -8,7 +8,9 @@ time); one compiled pass over the points does the same arithmetic in registers. 
 distance field's trilinear lookup (tens of thousands of points per seating of the edge
 points) is the same story: one pass instead of some twenty array passes, and so is the
 rasterisation of a model's projected footprint (every few iterations of every silhouette
-term).
+term) and the search for each observed contour pixel's nearest outline point (every
+iteration of every silhouette term: building and querying a KD-tree for a thousand points
+cost more than the rest of the term).
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -18,7 +20,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["footprint_mask", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -188,11 +190,66 @@ def footprint_mask(a: np.ndarray, b: np.ndarray, height: int, width: int) -> np.
     return mask
 
 
+@numba.njit(cache=True, nogil=True)
+def nearest_points(points: np.ndarray, queries: np.ndarray, cell: float) -> np.ndarray:
+    """Index (M,) of the nearest of ``points`` (N >= 1, 2) to each of ``queries`` (M, 2),
+    exactly: the points are binned on a grid of ``cell``-sized squares, and each query
+    visits the rings of cells around its own until no closer point can lie further out
+    (a point in ring r + 1 is at least r cells away)."""
+    n = points.shape[0]
+    lo_u, lo_v = points[0, 0], points[0, 1]
+    hi_u, hi_v = lo_u, lo_v
+    for k in range(n):
+        lo_u, hi_u = min(lo_u, points[k, 0]), max(hi_u, points[k, 0])
+        lo_v, hi_v = min(lo_v, points[k, 1]), max(hi_v, points[k, 1])
+    cols = int((hi_u - lo_u) / cell) + 1
+    rows = int((hi_v - lo_v) / cell) + 1
+    bin_of = np.empty(n, np.int64)
+    start = np.zeros(cols * rows + 1, np.int64)
+    for k in range(n):
+        bin_of[k] = int((points[k, 1] - lo_v) / cell) * cols + int((points[k, 0] - lo_u) / cell)
+        start[bin_of[k] + 1] += 1
+    for b in range(cols * rows):
+        start[b + 1] += start[b]
+    order = np.empty(n, np.int64)
+    filled = start[:-1].copy()
+    for k in range(n):
+        order[filled[bin_of[k]]] = k
+        filled[bin_of[k]] += 1
+    found = np.empty(queries.shape[0], np.int64)
+    for q in range(queries.shape[0]):
+        u, v = queries[q, 0], queries[q, 1]
+        cu = int(np.floor((u - lo_u) / cell))
+        cv = int(np.floor((v - lo_v) / cell))
+        # Rings beyond this reach lie wholly outside the grid.
+        reach = max(cu, cols - 1 - cu, cv, rows - 1 - cv, 0)
+        best, best_d2 = -1, np.inf
+        for r in range(reach + 1):
+            for gv in range(max(cv - r, 0), min(cv + r, rows - 1) + 1):
+                on_edge = gv == cv - r or gv == cv + r
+                step = 1 if on_edge else 2 * r
+                gu = cu - r
+                while gu <= cu + r:
+                    if 0 <= gu < cols:
+                        b = gv * cols + gu
+                        for j in range(start[b], start[b + 1]):
+                            k = order[j]
+                            d2 = (points[k, 0] - u) ** 2 + (points[k, 1] - v) ** 2
+                            if d2 < best_d2 or (d2 == best_d2 and k < best):
+                                best, best_d2 = k, d2
+                    gu += step
+            if best >= 0 and best_d2 <= (r * cell) ** 2:
+                break
+        found[q] = best
+    return found
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel now, on a tiny problem: the first
     compilation takes about two seconds, which no case in the operating room should wait."""
     schur_complement(np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 1, 6, 3)),
                      np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
+    nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     for gradient in (False, True):
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)
