@@ -1,6 +1,6 @@
 """The joint solver: both C-arm views, both pins and every edge point at once.
 
-Problem layout (DESIGN.md section 4): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
+Problem layout (docs/solver.md): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
 T_tibia_pin1, T_tibia_pin2]`` and one 3D point per kept contour pixel (bone points in the
 tibia frame, pin points in their pin's frame). The schedule:
 

@@ -1,4 +1,4 @@
-"""The energy terms of the joint solver (DESIGN.md section 4), with analytic Jacobians.
+"""The energy terms of the joint solver (docs/solver.md), with analytic Jacobians.
 
 Each term concerns one view and one rigid body (the bone, or one pin) and returns whitened
 residuals (divided by the expected noise ``sigma``) for :mod:`solver.optimizer`:

@@ -25,7 +25,7 @@ refused, as are sets with too few usable frames, all plates nearly fronto-parall
 final RMS above ``max_rms_px``. Every run produces a report (:func:`calibrate` returns it;
 a refusal carries it on the :class:`CalibrationError`).
 
-File (DESIGN.md section 6), ``slamtka-calibration/2``: id, description, creation time,
+File (docs/design.md), ``slamtka-calibration/2``: id, description, creation time,
 detector (size, pixel spacing, field size when known), camera (K and field radius),
 distortion, RMS overall and per image, rejected images with their reason, the phantom, the
 estimated plate error, the intrinsics' standard deviations, optionally the C-arm it belongs
