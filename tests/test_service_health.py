@@ -21,7 +21,7 @@ import pytest
 
 from slamtka.drivers.encoder_link import LinkState
 from slamtka.sim.simulate import default_camera
-from slamtka.solver.imaging.calibration import write_calibration
+from slamtka.solver.imaging.calibration_file import write_calibration
 from slamtka.service.health import judge, prometheus_text
 from slamtka.service.status import Metrics
 from slamtka.service.story import LinkWatch, tell

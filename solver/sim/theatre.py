@@ -155,7 +155,7 @@ class Theatre:
     # -- set-up ---------------------------------------------------------------------------
     def prepare(self) -> Path:
         """Plans folder (the phantom, precomputed once), calibration and configuration."""
-        from slamtka.solver.imaging.calibration import write_calibration
+        from slamtka.solver.imaging.calibration_file import write_calibration
 
         self.root.mkdir(parents=True, exist_ok=True)
         store = PlanStore(self.root / "plans")
