@@ -44,6 +44,7 @@ import numpy as np
 
 from ..jsonfile import read_json_object
 from .field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
+from .response import linearised_attenuation
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]
@@ -328,16 +329,25 @@ _PAIR_MAX_ANGLE_DEG = 8.0
 _PAIR_MAX_WIDTH_RATIO = 1.4
 
 
+# How far (px) pins are commonly found from their centres projected at the initial pose
+# (encoder set-up error: ~6 deg and 20 mm at level 1, ~150 px at the pins).
+_EXPECTED_PIN_SPREAD_PX = 150.0
+
+
 def _robust_width(bar: _Bar, points: np.ndarray) -> float:
     across = (points - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
     return 4.0 * float(np.median(np.abs(across)))
 
 
-def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | None:
+def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], expected: np.ndarray | None = None
+                   ) -> tuple[int, int] | None:
     """The two shadows most alike in direction and width (the block's parallel pins), or
-    None when no two are alike enough to be the pins."""
+    None when no two are alike enough to be the pins. With ``expected`` pin centres (the
+    initial pose's projection), a pair far from them costs more: a retractor blade seen
+    edge-on is as straight as a pin, but not where the plan puts the pins."""
     best, best_cost = None, np.inf
     widths = [_robust_width(bar, points) for bar, points in fitted]
+    where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
@@ -346,6 +356,11 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | N
             if angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO:
                 continue
             cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if where is not None:
+                a, b = fitted[i][0].centre, fitted[j][0].centre
+                off = min(np.linalg.norm(a - where[0]) + np.linalg.norm(b - where[1]),
+                          np.linalg.norm(a - where[1]) + np.linalg.norm(b - where[0]))
+                cost += 0.5 * off / _EXPECTED_PIN_SPREAD_PX
             if cost < best_cost:
                 best, best_cost = (i, j), cost
     return best
@@ -452,7 +467,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     pixels = np.column_stack([xs, ys]).astype(float)
     shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
     fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
-    pair = _parallel_pair(fitted)
+    pair = _parallel_pair(fitted, expected)
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
@@ -654,7 +669,6 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     h, w = image.shape
     image, overlay = remove_overlays(image)
     centre, radius, outside, sign = field_of_view(image, config.polarity)
-    A = attenuation(image, outside, sign)
     u, v = np.arange(w)[None, :], np.arange(h)[:, None]
     r = np.hypot(u - centre[0], v - centre[1])
     valid = r < (radius if radius is not None else np.inf) - 2.0
@@ -663,6 +677,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= ~cv2.dilate(overlay.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     if valid.sum() < config.min_bone_area_px:
         raise ContourError("the field of view is too small to hold a tibia")
+    # A frame stored through a log or gamma response is not linear in the quanta: its
+    # attenuation is read from its own noise instead of -log of the grey level.
+    linearised = linearised_attenuation(image, valid, sign)
+    A = attenuation(image, outside, sign) if linearised is None else linearised
     broad = _broad_opaque(A, valid, config)
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
@@ -690,7 +708,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
                if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
-        "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
+        "polarity": "dark" if sign > 0 else "bright",
+        "response": "linear" if linearised is None else "linearised from the noise", **pin_info, **bone_info,
         "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
