@@ -592,6 +592,10 @@ _GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD
 _MAX_SMOOTHING_PX = 4.0
 
 
+# How far inside an intensifier's rim a processed frame is left out: unsharp masking of
+# 6-30 px leaves the rim's halo there (coverage of the true outline on 18 simulated
+# processed frames: 55% with none, 62% with 40 px; bone median within 3 px: 8 -> 10 frames).
+_PROCESSED_RIM_HALO_PX = 40.0
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
@@ -681,6 +685,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     # attenuation is read from its own noise instead of -log of the grey level.
     linearised = linearised_attenuation(image, valid, sign)
     A = attenuation(image, outside, sign) if linearised is None else linearised
+    # The C-arm that processed the frame also sharpened it: the field's rim, a step up from
+    # no signal, leaves a halo inside the circle that is neither air nor tissue.
+    halo = _PROCESSED_RIM_HALO_PX if linearised is not None and radius is not None else 0.0
+    valid &= r < (radius if radius is not None else np.inf) - halo
     broad = _broad_opaque(A, valid, config)
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
@@ -697,7 +705,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     (pin1, pin2), pins, pin_info = _pins(A, valid, config, expected_pins)
     bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
     margin = config.fov_margin_px
-    rim_ok = r < (radius if radius is not None else np.inf) - margin
+    rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
     rim_ok &= _distance_to(broad) > margin
