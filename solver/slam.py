@@ -28,6 +28,7 @@ quality gates and the uncertainty.
 
 from __future__ import annotations
 
+import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -55,13 +56,19 @@ from slamtka.solver.optimizer import (
 )
 from slamtka.solver.plan import Plan, RigidModel
 from slamtka.solver.setup_search import SetupSearch, search_setup
-from slamtka.solver.triangulation import PinSighting, triangulate_pin
 from slamtka.solver.terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
+from slamtka.solver.triangulation import PinSighting, sighting_score, triangulate_pin
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 
 # Coarse ray search in seat_on_rays: steps this many times the fine step.
 _SEAT_COARSE = 4
+# A view's two pin labels are swapped when the swap at least halves how badly the pins'
+# sightings meet and gains more than a millimetre (JointProblem.relabelled).
+_SWAP_GAIN = 0.5
+_SWAP_MIN_MM = 1.0
+
+log = logging.getLogger("slamtka.solver")
 
 # The proposed method, the same without the encoder odometry factor, and the paper's four
 # baselines: model projection only (E_mp) or contour back-projection only (E_rp + E_bp), each
@@ -407,6 +414,30 @@ class JointProblem:
         body = self.body_index(label)
         return poses[k] if body is None else poses[k] @ poses[body]
 
+    def relabelled(self, poses: tuple[Pose, ...]) -> tuple[JointProblem, list[str]]:
+        """The problem with the two pins' labels swapped in each view where the swap makes
+        both pins' sightings meet clearly better (views posed from the bone alone; labels
+        from extraction's guess): a pin called pin 1 in one view and pin 2 in the other would
+        be fitted as two pins that cross between the views, a wrong plane with no misfit.
+        Also the ids of the views swapped (``self`` and none when nothing is)."""
+        length = self.plan.pin_length()
+        a, b = PIN_LABELS
+
+        def score(views: list[ViewObservation]) -> float:
+            return sum(sighting_score([PinSighting(v.camera, poses[k], v.contours[label])
+                                       for k, v in enumerate(views)], length)
+                       for label in PIN_LABELS)
+
+        views, swapped = list(self.views), []
+        for k in range(1, self.n_views):
+            v = views[k]
+            trial = views[:k] + [ViewObservation(v.view_id, v.camera, {**v.contours, a: v.contours[b],
+                                                                       b: v.contours[a]}, v.notes)] + views[k + 1:]
+            kept, changed = score(views), score(trial)
+            if changed < min(_SWAP_GAIN * kept, kept - _SWAP_MIN_MM):
+                views, swapped = trial, swapped + [v.view_id]
+        return (JointProblem(self.plan, views, self.config) if swapped else self), swapped
+
     def triangulated_pins(self, poses: tuple[Pose, ...]) -> tuple[Pose, ...]:
         """Each pin's pose triangulated from its contours in the views at ``poses`` (the
         current pin pose where it cannot be)."""
@@ -578,6 +609,10 @@ class _Schedule:
             # Lost already: the caller may restart from a global search at once.
             return state, p.silhouette_terms(("bone",), 1.0, tight), SolveReport(
                 False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])
+        p, swapped = p.relabelled(state.poses)
+        self.problem = p
+        for view_id in swapped:
+            log.info("view %s: the pin labels were swapped to match the other views", view_id)
         state = self.with_triangulated_pins(state)
         pins_options = c.fine if method == "projection-split" else c.coarse_pins
         state, report = self.lm(p.silhouette_terms(PIN_LABELS, 1.0, tight), state,

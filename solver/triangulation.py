@@ -19,7 +19,7 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
 
-__all__ = ["PinSighting", "triangulate_pin", "triangulate_rays"]
+__all__ = ["PinSighting", "sighting_score", "triangulate_pin", "triangulate_rays"]
 
 # Ends of the pixels' spread along the segment (percentiles), robust to stray contour pixels.
 _END_PERCENTILES = (0.5, 99.5)
@@ -55,15 +55,10 @@ def triangulate_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.nd
     return point, float(np.sqrt(np.mean(np.sum(gaps**2, axis=1))))
 
 
-def triangulate_pin(sightings: list[PinSighting], prior: Pose,
-                    length_mm: float | None = None) -> Pose | None:
-    """Pin pose (+z along the axis from the tip, tip at the origin) seen in ``sightings``;
-    ``prior`` (the current or planned pose) decides which end is the tip and the roll;
-    ``length_mm``, the pin model's length, helps to pair the segment ends across views.
-    None if the pin is seen in fewer than two views."""
-    sightings = [s for s in sightings if len(s.pixels) >= 3]
-    if len(sightings) < 2:
-        return None
+def _best_ends(sightings: list[PinSighting], length_mm: float | None
+               ) -> tuple[float, np.ndarray, np.ndarray]:
+    """The pin's two ends triangulated from the sightings' segment ends, and the pairing's
+    score (mm): how badly the rays meet, plus how far the pin is from the model's length."""
     sources = np.array([s.source() for s in sightings])
     end_rays = [s.end_rays() for s in sightings]
     # Which end of each view's segment is which is not known. A pin running front to back
@@ -82,7 +77,26 @@ def triangulate_pin(sightings: list[PinSighting], prior: Pose,
             score += _LENGTH_WEIGHT * abs(np.linalg.norm(ends[1][0] - ends[0][0]) - length_mm)
         if best is None or score < best[0]:
             best = (score, ends[0][0], ends[1][0])
-    _, a, b = best
+    assert best is not None
+    return best
+
+
+def sighting_score(sightings: list[PinSighting], length_mm: float | None = None) -> float:
+    """How well the sightings fit one pin (mm, lower is better; inf when under two views)."""
+    sightings = [s for s in sightings if len(s.pixels) >= 3]
+    return _best_ends(sightings, length_mm)[0] if len(sightings) >= 2 else float("inf")
+
+
+def triangulate_pin(sightings: list[PinSighting], prior: Pose,
+                    length_mm: float | None = None) -> Pose | None:
+    """Pin pose (+z along the axis from the tip, tip at the origin) seen in ``sightings``;
+    ``prior`` (the current or planned pose) decides which end is the tip and the roll;
+    ``length_mm``, the pin model's length, helps to pair the segment ends across views.
+    None if the pin is seen in fewer than two views."""
+    sightings = [s for s in sightings if len(s.pixels) >= 3]
+    if len(sightings) < 2:
+        return None
+    _, a, b = _best_ends(sightings, length_mm)
     axis = b - a
     if np.linalg.norm(axis) < 1e-6:
         return None
