@@ -310,8 +310,10 @@ def _summary(r: dict) -> str:
         f"extraction median {c['extraction_median_s']:.2f} s (max {c['extraction_max_s']:.2f} s, CPU median "
         f"{c['extraction_cpu_median_s']:.2f} s)",
     ]
+    def fmt(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.3f}"
+
     for level, e in r["end_to_end"].items():
-        fmt = (lambda x: "n/a" if x is None else f"{x:.3f}")
         lines.append(f"end to end, level {level} (rot SD {e['rot_sd_rad']:.1f} rad, trans SD "
                      f"{e['trans_sd_mm']:.0f} mm): {e['measured']}/{e['cases']} measured, median |CTR| "
                      f"{fmt(e['median_ctr_abs_deg'])} deg, median |STR| {fmt(e['median_str_abs_deg'])} deg "

@@ -144,7 +144,7 @@ def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
     bodies = room_bodies(plan, draw)
     frames = []
     rng = np.random.default_rng(seed)
-    for k, T in enumerate(truth_case.truth_T_cam_tibia):
+    for T in truth_case.truth_T_cam_tibia:
         frames.append(render_room(plan, T, truth_case.truth_T_tibia_pin, camera, XRayParams(), draw, rng,
                                   scene_model, bodies))
     row["view_angles_deg"] = list(angles)
