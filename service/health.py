@@ -140,7 +140,7 @@ def _exposition(snapshot: Callable[[], dict | None]) -> bytes:
     from prometheus_client import CollectorRegistry, generate_latest
 
     registry = CollectorRegistry(auto_describe=False)
-    registry.register(_SnapshotCollector(snapshot))  # type: ignore[arg-type]  # duck-typed Collector
+    registry.register(_SnapshotCollector(snapshot))
     return generate_latest(registry)
 
 

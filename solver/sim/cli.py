@@ -7,6 +7,7 @@ import argparse
 import tempfile
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 from slamtka.service.solve_case import cmd_solve
 from slamtka.sim.bone_phantom import phantom_plan
@@ -79,7 +80,8 @@ def _operating_room(args: argparse.Namespace) -> OperatingRoom:
     meshes = getattr(args, "nuisance_meshes", None)
     base = (OperatingRoom.everything(meshes) if getattr(args, "scene", "idealised") == "operating-room"
             else OperatingRoom(mesh_folder=meshes))
-    return replace(base, **{name: True for name in NUISANCES if getattr(args, name, False)})
+    flags: dict[str, Any] = {name: True for name in NUISANCES if getattr(args, name, False)}
+    return replace(base, **flags)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
