@@ -74,8 +74,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+# What slamtka writes is patient data or derived from it: owner read-write, group read,
+# nobody else, whatever umask the shell, the container or a test runner handed down.
+PRIVATE_UMASK = 0o027
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    os.umask(PRIVATE_UMASK)
     args = build_parser(_chosen_command(argv)).parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")

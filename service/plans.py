@@ -2,9 +2,10 @@
 
 A plan is a :class:`solver.plan.Plan` folder (``plan.json``, meshes, ``cache/``) plus
 ``provenance.json`` (where the meshes came from, whether the landmarks were given or
-estimated, when it was imported). Folders are named ``<patient id, letters and digits
-only>-<side>-<digest>``: the digest keeps two patients whose IDs differ only in punctuation
-apart. ``plan add`` validates the meshes, estimates landmarks from a full-length tibia when
+estimated, when it was imported). Folders are named ``plan-<side>-<digest of the Patient
+ID>``: no patient identifier appears in a path (a listing, a backup log, a support ticket
+shows none); the Patient ID lives in ``plan.json``, which the lookup reads, so folders named
+the earlier way (``<id>-<side>-<digest>``) are still found. ``plan add`` validates the meshes, estimates landmarks from a full-length tibia when
 none are given (and says so), and builds the signed distance fields into the plan's cache,
 so nothing is computed during surgery. The folder appears atomically (built beside it,
 then renamed).
@@ -152,9 +153,7 @@ def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
 
 
 def _folder_name(patient_id: str, side: str) -> str:
-    slug = re.sub(r"[^A-Za-z0-9]+", "_", patient_id).strip("_")[:32] or "patient"
-    digest = hashlib.sha256(patient_id.encode()).hexdigest()[:8]
-    return f"{slug}-{side}-{digest}"
+    return f"plan-{side}-{hashlib.sha256(patient_id.encode()).hexdigest()[:16]}"
 
 
 class PlanStore:
