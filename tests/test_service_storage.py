@@ -11,6 +11,7 @@ import resource
 import signal
 import socket
 import threading
+import time
 
 import pytest
 
@@ -203,3 +204,69 @@ def test_the_watchdog_is_pinged_only_while_the_worker_lives(tmp_path, monkeypatc
         assert messages and messages[-1].startswith(b"STATUS=worker thread not alive")
     monkeypatch.delenv("NOTIFY_SOCKET")
     assert not notify("READY=1")  # outside systemd: nothing
+
+
+# -- the worker ---------------------------------------------------------------------------
+
+def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
+    """A real ENOSPC (``/dev/full`` behind the audit log's descriptor) in the middle of a
+    case's run: the worker thread lives on and keeps beating; the audit log resumes."""
+    from pydicom.uid import generate_uid
+
+    from slamtka.service.config import load_config
+    from slamtka.service.frames import encode_frame
+    from slamtka.service.serve import Service
+    from slamtka.sim.theatre import Theatre
+    from service_testing import free_port, small_frame
+
+    theatre = Theatre(tmp_path, encoders=False)
+    theatre.prepare()
+    service = Service(load_config(theatre.write_config(free_port(), "")))
+    service.start()
+    saved = os.dup(service.audit._fd)
+    full = os.open("/dev/full", os.O_WRONLY)
+    try:
+        study, series = generate_uid(), generate_uid()
+        os.dup2(full, service.audit._fd)
+        for angle in (-30.0, 30.0):  # a two-view case: due, so the worker runs and audits it
+            frame = small_frame(primary_angle_deg=angle, study_uid=study, series_uid=series,
+                                sop_instance_uid=generate_uid())
+            entry, _ = service.spool.store(encode_frame(frame))
+            service._incoming.put(entry)
+        beat = time.time()
+        deadline = time.monotonic() + 30.0
+        while (service.worker_last_beat or 0.0) <= beat + 1.0 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert service._worker.is_alive() and service.worker_alive()
+        assert service.worker_last_beat > beat + 1.0  # still looping after the failures
+    finally:
+        os.dup2(saved, service.audit._fd)
+        os.close(saved)
+        os.close(full)
+        service.stop()
+    assert verify_chain(service.config.audit_log).broken is None
+    assert [e["event"] for e in read_audit(service.config.audit_log)][-1] == "service_stopped"
+
+
+def test_a_second_serve_on_the_same_data_folder_is_refused_at_once(tmp_path):
+    result = run_items(tmp_path, {"second_instance": 1})["second_instance"]
+    assert result["failures"] == 0, result
+    assert result["exit_status"] == 75
+
+
+def test_a_damaged_spool_is_quarantined_and_the_service_starts(tmp_path):
+    result = run_items(tmp_path, {"damaged_spool": 4})["damaged_spool"]
+    assert result["failures"] == 0, result
+    assert result["quarantined"] == 4 and len(result["damaged"]) == 4
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
+def test_a_real_enospc_loses_no_acknowledged_frame_and_the_worker_measures_on(tmp_path):
+    result = run_items(tmp_path, {"enospc": 1})["enospc"]
+    assert result["failures"] == 0, result
+    assert result["stores_refused_while_full"] > 0 and result["unaudited_acks"] == 0
+
+
+def test_uid_conflicts_counted_by_the_bench(tmp_path):
+    result = run_items(tmp_path, {"uid_conflict": 2})["uid_conflict"]
+    assert result["failures"] == 0 and result["conflicts_audited"] == 4, result

@@ -71,13 +71,14 @@ def small_tmpfs(folder: Path, size_mb: int) -> Iterator[Path]:
 def _fill(path: Path, leave_bytes: int = 0) -> None:
     """Grow ``path`` until the file system is full, then give back ``leave_bytes``."""
     chunk = b"\0" * 65536
-    with path.open("ab") as f:
-        try:
+    try:
+        with path.open("ab") as f:
             while True:
                 f.write(chunk)
                 f.flush()
-        except OSError:
-            pass
+    except OSError:  # full (the open itself fails when not even a directory entry fits)
+        if not path.exists():
+            return
     with path.open("r+b") as f:  # whatever the buffer still held did not fit
         size = f.seek(0, os.SEEK_END)
         f.truncate(max(0, size - leave_bytes))
@@ -115,7 +116,10 @@ def enospc(root: Path, count: int) -> Tally:
             for status, uid in zip(_store_until_accepted(client, half, 1), half.uids):
                 if status == 0x0000:
                     acked.add(uid)
-            time.sleep(1.0)  # the worker meets ENOSPC on the run's outputs and audit lines
+            _fill(filler)  # full again while the worker runs; refusals use up the audit
+            for _ in range(16):  # log's last page, so the worker's own audit lines meet ENOSPC
+                refused += client.store(*full.views[0]) != 0x0000
+            time.sleep(2.0)
             filler.unlink()
             for case in (full, after):  # space again: the C-arm's retries and a new case
                 statuses = _store_until_accepted(client, case, 5)
@@ -140,8 +144,16 @@ def enospc(root: Path, count: int) -> Tally:
                            acknowledged=len(acked), unaudited_acks=len(unaudited),
                            audit_lines=chain.lines, chain_broken_at=chain.broken,
                            worker_failures_audited=sum(e["event"] == "failed"
-                                                       for e in read_audit(audit)))
+                                                       for e in read_audit(audit)),
+                           worker_steps_survived=_log_count(root, "worker: "),
+                           unauditable_failures=_log_count(root, "worker: cannot audit"))
     return tally
+
+
+def _log_count(root: Path, text: str) -> int:
+    """Lines of the service's log containing ``text``."""
+    log = root / "slamtka.service.log"
+    return sum(text in line for line in log.read_text(errors="replace").splitlines())
 
 
 def _damage(kind: str, instance: Path) -> Path:
