@@ -270,3 +270,11 @@ def test_a_real_enospc_loses_no_acknowledged_frame_and_the_worker_measures_on(tm
 def test_uid_conflicts_counted_by_the_bench(tmp_path):
     result = run_items(tmp_path, {"uid_conflict": 2})["uid_conflict"]
     assert result["failures"] == 0 and result["conflicts_audited"] == 4, result
+
+
+def test_a_burst_of_large_frames_stays_within_the_memory_bound(tmp_path):
+    from slamtka.bench.storage import burst_memory
+
+    tally = burst_memory(tmp_path, 8, side=1024)
+    assert tally.failures == 0, tally.notes
+    assert 0 < tally.notes["rss_growth_mb"] <= tally.notes["bound_mb"]
