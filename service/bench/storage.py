@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -302,6 +303,7 @@ def _burst(root: Path, cap: int, frames: int, side: int, parallel: int) -> tuple
         stored = len(target.stored)
     finally:
         target.stop()
+        shutil.rmtree(root, ignore_errors=True)  # hundreds of MB of frames, often on tmpfs
     if client.exitcode != 0 or stored != frames:
         raise RuntimeError(f"burst: {stored} of {frames} frames stored (client {client.exitcode})")
     return rss.growth_mb, refused.value
