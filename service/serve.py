@@ -267,7 +267,7 @@ class Service:
                     break
             if None in batch:  # stopping; what was spooled is recovered at the next start
                 return
-            for entry in batch:
+            for entry in filter(None, batch):  # (no None left: checked above)
                 self._survive(f"assembling {entry.id}", self._assemble, entry, pending)
             self._survive("taking operator requests", self._take_requests, pending, reruns)
             if pending:

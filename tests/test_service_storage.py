@@ -212,12 +212,12 @@ def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
     """A real ENOSPC (``/dev/full`` behind the audit log's descriptor) in the middle of a
     case's run: the worker thread lives on and keeps beating; the audit log resumes."""
     from pydicom.uid import generate_uid
+    from service_testing import free_port, small_frame
 
     from slamtka.service.config import load_config
     from slamtka.service.frames import encode_frame
     from slamtka.service.serve import Service
     from slamtka.sim.theatre import Theatre
-    from service_testing import free_port, small_frame
 
     theatre = Theatre(tmp_path, encoders=False)
     theatre.prepare()

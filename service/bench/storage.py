@@ -27,11 +27,11 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, Iterator
 
 from slamtka.bench.faults import CArmClient, SmallCase, running_theatre, small_case
 from slamtka.bench.hardening import PeakRss, Tally, Target
@@ -132,7 +132,7 @@ def enospc(root: Path, count: int) -> Tally:
                 statuses = _store_until_accepted(client, case, 5)
                 acked.update(uid for uid, s in zip(case.uids, statuses[-len(case.uids):])
                              if s == 0x0000)
-                measured = _wait(lambda: case.result(theatre).is_file(), _RESULT_WAIT_S)
+                measured = _wait(case.result(theatre).is_file, _RESULT_WAIT_S)
                 tally.count(not measured, f"round {k}: {case.patient_id} not measured after "
                                           "space returned (worker dead?)")
             tally.count(theatre.service.poll() is not None, f"round {k}: the service exited")
