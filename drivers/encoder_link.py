@@ -469,7 +469,7 @@ class EncoderLink:
         with self._changed:
             self._state = state
             self._changed.notify_all()
-        log.info("encoder link %s: %s (%s)", self.port, status, reason)
+        log.debug("encoder link %s: %s (%s)", self.port, status, reason)  # the service says when it matters
         if self._on_state is not None:
             try:
                 self._on_state(state)

@@ -1,7 +1,7 @@
 """C-arm kinematics: encoder joint values to the X-ray source and detector pose, and from a
 nominal patient set-up to each view's initial pose ``T_cam_tibia``.
 
-Frame ``carm`` (the C-arm's base frame, DESIGN.md section 3): origin at the isocentre with
+Frame ``carm`` (the C-arm's base frame, README.md, Conventions): origin at the isocentre with
 every joint at zero, +z vertically up, +x horizontal along the L-arm from the column towards
 the C (across the table), +y = z x x (along the table). With every joint at zero the source
 is below the table at ``(0, 0, -source_to_isocentre)`` and the camera frame ``cam`` has the
@@ -248,7 +248,7 @@ class CArmKinematics:
         return T
 
     def T_carm_cam(self, joints: JointReading) -> Pose:
-        """Pose of the X-ray source (camera frame of DESIGN.md section 3) in ``carm``."""
+        """Pose of the X-ray source (camera frame of README.md, Conventions) in ``carm``."""
         self.check(joints)
         return self.source_pose(joints)
 

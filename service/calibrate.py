@@ -20,7 +20,8 @@ import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from slamtka.solver.imaging.calibration import CalibrationError, CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.calibration_file import CalibrationError
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
 from slamtka.solver.imaging.plate import PhantomSpec
 
 from slamtka.service.calibrations import detector_field_mm, device_identity

@@ -22,7 +22,7 @@ from pathlib import Path
 from pydicom.dataset import Dataset
 from pydicom.multival import MultiValue
 
-from slamtka.solver.imaging.calibration import Calibration, CalibrationError, assign_device, load_calibration
+from slamtka.solver.imaging.calibration_file import Calibration, CalibrationError, assign_device, load_calibration
 
 from slamtka.service.atomic_files import write_json_atomic
 

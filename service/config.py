@@ -296,6 +296,29 @@ class SenderConfig:
 
 
 @dataclass(frozen=True)
+class HealthConfig:
+    """How the service reports its health: the status snapshot and the HTTP endpoint
+    (Prometheus ``/metrics`` and ``/healthz``), on the loopback interface unless told."""
+
+    snapshot_interval_s: float = 2.0  # status.json is stale after three intervals
+    http_enabled: bool = True
+    http_bind_address: str = "127.0.0.1"
+    http_port: int = 9112
+    # A run is bounded (the global set-up search included); a worker busier than this is stuck.
+    max_run_s: float = 120.0
+
+    def check(self, where: str) -> None:
+        _check_range(f"{where}.snapshot_interval_s", self.snapshot_interval_s, 0.2, 60.0)
+        _check_range(f"{where}.http_port", self.http_port, 0, 65535)
+        _check_range(f"{where}.max_run_s", self.max_run_s, 5.0, 3600.0)
+        try:
+            ipaddress.ip_address(self.http_bind_address)
+        except ValueError:
+            raise ConfigError(f"{where}.http_bind_address: {self.http_bind_address!r} is not an "
+                              "IP address") from None
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """The whole configuration; relative paths are relative to the TOML file."""
 
@@ -307,6 +330,7 @@ class ServiceConfig:
     carm: CarmConfig = field(default_factory=CarmConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     sender: SenderConfig = field(default_factory=SenderConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
     destinations: list[Destination] = field(default_factory=list)
     source: Path | None = None  # the TOML file this came from (not a key)
 
@@ -315,6 +339,7 @@ class ServiceConfig:
         self.carm.check("carm")
         self.pipeline.check("pipeline")
         self.sender.check("sender")
+        self.health.check("health")
         names = [d.name for d in self.destinations]
         if len(set(names)) != len(names):
             raise ConfigError(f"destinations: names must be unique, got {names}")

@@ -1,7 +1,7 @@
 """X-ray frames as DICOM: encode a C-arm image, decode one received over the network.
 
 A :class:`Frame` is one single-plane C-arm image with the geometry attributes the pipeline
-cross-checks (DESIGN.md section 6): positioner angles, source distances and the imager pixel
+cross-checks (docs/design.md): positioner angles, source distances and the imager pixel
 spacing at the detector. :func:`encode_frame` writes it as X-Ray Angiographic Image Storage
 (default) or X-Ray Radiofluoroscopic Image Storage, as mobile C-arms send them; the result
 passes dicom3tools' ``dciodvfy``. :func:`decode_frame` accepts XA, Enhanced XA, RF, DX and

@@ -25,7 +25,7 @@ from pydicom.errors import InvalidDicomError
 
 from slamtka.drivers.encoder_link import EncoderReading
 from slamtka.drivers.kinematics import CArmKinematics, JointReading
-from slamtka.solver.imaging.calibration import CalibrationError, load_calibration
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.plan import Plan
 

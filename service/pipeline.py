@@ -29,6 +29,7 @@ import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
+from slamtka.solver import kernels
 from slamtka.solver.geometry import Pose
 from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
 from slamtka.solver.measurement import pin_axis_points
@@ -123,7 +124,9 @@ class Pipeline:
 
     def warm_up(self) -> None:
         """Build a throwaway report and image once, so that the first case does not pay for
-        loading and initialising the DICOM builders (about half a second)."""
+        loading and initialising the DICOM builders (about half a second), and compile the
+        solver's kernels (about two seconds the first time)."""
+        kernels.warm_up()
         source = encode_frame(Frame(np.zeros((8, 8), np.uint16), (0.2, 0.2), patient_id="WARMUP",
                                     acquisition_datetime=datetime.now(timezone.utc)))
         doc = {"status": "not_measured", "software": {"version": "warm-up"}, "inputs": None,

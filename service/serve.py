@@ -30,7 +30,7 @@ import queue
 import signal
 import sys
 import threading
-import time
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -46,7 +46,9 @@ from slamtka.service.scp import DicomReceiver
 from slamtka.service.sender import Sender
 from slamtka.service.atomic_files import remove_partial
 from slamtka.service.spool import Spool, SpoolEntry
-from slamtka.service.status import Metrics, StatusBoard
+from slamtka.service.health import HealthServer, WorkerHeartbeat
+from slamtka.service.status import Metrics, StatusBoard, read_status
+from slamtka.service.story import LinkWatch, tell
 from slamtka.service.systemd import Watchdog, notify, watchdog_interval_s
 from slamtka.service.workflow import Workflow
 
@@ -91,8 +93,8 @@ class Service:
                                    f"({exc.strerror or exc})") from None
         # Before anything in the folder is opened, repaired or removed.
         self._lock_fd: int | None = lock_data_folder(config.data_dir)
-        self.metrics = Metrics()
-        self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe])
+        self.metrics = Metrics(_carried_counters(config.status_file))
+        self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe, tell])
         self.spool = Spool(config.spool_dir)
         # Imported here, not at the top: `slamtka status` (the container's health check) and the
         # other commands then start without loading rerun, highdicom and the imaging chain.
@@ -103,8 +105,11 @@ class Service:
                                                 config.carm.calibration_match)
         kinematics = CArmKinematics.from_config(config.carm.kinematics)
         self.link = None
+        self.link_watch = None
         if config.carm.encoder_port:
-            self.link = EncoderLink(config.carm.encoder_port, LinkConfig.from_config(config.carm.link))
+            self.link_watch = LinkWatch(str(config.carm.encoder_port))
+            self.link = EncoderLink(config.carm.encoder_port, LinkConfig.from_config(config.carm.link),
+                                    on_state=self.link_watch.on_state)
         geometry = ViewGeometry(kinematics, config.carm.setup, self.link,
                                 config.carm.max_reading_age_s, config.carm.angle_check_deg,
                                 config.carm.max_clock_offset_s)
@@ -124,7 +129,7 @@ class Service:
         self._incoming: queue.Queue[SpoolEntry | None] = queue.Queue()
         self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put)
         self._worker: threading.Thread | None = None
-        self.worker_last_beat: float | None = None  # time.time() of the worker's last loop
+        self.heartbeat = WorkerHeartbeat()
         self._watchdog: Watchdog | None = None
         self._state = "starting"
         self._started = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -137,13 +142,30 @@ class Service:
             "last_result": lambda: self._last_result, "link": self._link_status,
             "queue": lambda: {"pending": len(self.sender.pending()),
                               "failed": len(self.sender.failed())},
-            "metrics": self.metrics.snapshot, "calibration": self.calibrations.describe})
+            "metrics": self.metrics.snapshot, "calibration": self.calibrations.describe,
+            "worker": self._worker_status}, interval_s=config.health.snapshot_interval_s)
+        self.health_server = self._health_server(config)
 
     # -- status sections ------------------------------------------------------------------
     def _dicom_status(self) -> dict:
         d = self.config.dicom
         return {"ae_title": d.ae_title, "address": d.bind_address, "port": self.receiver.port,
                 "tls": d.tls.enabled}
+
+    def _health_server(self, config: ServiceConfig) -> HealthServer | None:
+        """The HTTP health endpoint; a port already taken costs the endpoint, not the service
+        (status.json and `slamtka status` still tell the health)."""
+        if not config.health.http_enabled:
+            return None
+        try:
+            return HealthServer(config.health, lambda: self.status.last)
+        except OSError as exc:
+            log.error("no health endpoint: cannot listen on %s:%d (%s)", config.health.http_bind_address,
+                      config.health.http_port, exc.strerror or exc)
+            return None
+
+    def _worker_status(self) -> dict:
+        return self.heartbeat.describe(self.worker_alive(), self.config.health.max_run_s)
 
     def _link_status(self) -> dict | None:
         if self.link is None:
@@ -179,6 +201,8 @@ class Service:
         self._worker.start()
         self._state = "running"
         self.status.start()
+        if self.health_server is not None:
+            self.health_server.start()
         self.audit.record("service_started", ae_title=self.config.dicom.ae_title,
                           port=self.receiver.port, recovered_instances=self.spool.count(),
                           partial_files_removed=partial, quarantined=quarantined,
@@ -202,6 +226,10 @@ class Service:
         if self.link is not None:
             self.link.stop()
         self._state = "stopped"
+        if self.health_server is not None:
+            self.health_server.stop()
+        if self.link_watch is not None:
+            self.link_watch.close()
         self.audit.record("service_stopped")
         self.status.stop(final=self.status.write())
         self.audit.close()
@@ -252,7 +280,7 @@ class Service:
         pending = {c.case_id: c for c in due}  # cases to run, oldest first
         reruns: set[str] = set()  # of those, the ones an operator asked to run again
         while True:
-            self.worker_last_beat = time.time()
+            self.heartbeat.beat()
             batch = []
             if not pending:
                 try:  # a timeout, to take the operators' requests (`slamtka case`) when idle
@@ -272,8 +300,9 @@ class Service:
             self._survive("taking operator requests", self._take_requests, pending, reruns)
             if pending:
                 case = pending.pop(next(iter(pending)))
-                self._survive(f"case {case.case_id}", self._process, case,
-                              case.case_id in reruns)
+                with self.heartbeat.busy(f"case {case.case_id}"):
+                    self._survive(f"case {case.case_id}", self._process, case,
+                                  case.case_id in reruns)
                 reruns.discard(case.case_id)
             self._survive("refreshing the status", self.status.refresh)
 
@@ -344,9 +373,31 @@ class Service:
             folder=str(outcome.folder), outputs_sha256=file_digests(outcome.folder))
 
 
+def _carried_counters(status_file: Path) -> dict:
+    """The counters of the previous run's last snapshot (none if it is absent or damaged)."""
+    try:
+        previous = read_status(status_file)
+    except (OSError, ValueError) as exc:
+        log.warning("counters start at 0: %s", exc)
+        return {}
+    metrics = (previous or {}).get("metrics")
+    return metrics if isinstance(metrics, dict) else {}
+
+
+def _service_logging(verbose: bool) -> None:
+    """INFO for the service's own story (DEBUG with --verbose); the DICOM libraries only when
+    something needs attention: not a line per association or per built object."""
+    logging.getLogger().setLevel(logging.DEBUG if verbose else logging.INFO)
+    for chatty in ("pynetdicom", "highdicom"):
+        logging.getLogger(chatty).setLevel(logging.WARNING)
+    # highdicom warns of legal but unusual values it is given (names of one component): not
+    # the operator's business, and the values are kept as received.
+    warnings.filterwarnings("ignore", category=UserWarning, module="highdicom")
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    logging.getLogger("pynetdicom").setLevel(logging.WARNING)  # not a line per association
+    _service_logging(args.verbose)
     try:
         service = Service(config)
     except DataFolderBusy as exc:
@@ -357,7 +408,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     service.start()
     print(f"slamtka serving DICOM as {config.dicom.ae_title} on {config.dicom.bind_address}:"
-          f"{service.receiver.port}; data in {config.data_dir}", flush=True)
+          f"{service.receiver.port}; data in {config.data_dir}"
+          + (f"; health on http://{config.health.http_bind_address}:{service.health_server.port}"
+             if service.health_server is not None else ""), flush=True)
     while not stop.wait(1.0):
         if not service.worker_alive():
             log.critical("the worker thread ended; exiting (status %d) to be restarted",

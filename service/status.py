@@ -4,8 +4,10 @@ The running service rewrites ``status.json`` in its data folder (atomically) on 
 and every few seconds: spool, cases, the last result, the encoder link, the send queue and
 counters. ``slamtka status --config FILE`` prints it (``--json`` as is, ``--metrics`` in
 the Prometheus text format), and ``--echo`` checks the DICOM side end to end with a C-ECHO
-under the health-check AE title (allowed to associate, never to store). Exit status: 0 when
-the service is up (and answered the echo), 1 otherwise.
+under the health-check AE title (allowed to associate, never to store). Whether the service
+is up is judged by :func:`slamtka.service.health.judge` (fresh, running, worker alive); exit
+status 0 when it is up (and, with ``--echo``, answered the echo too), 1 otherwise. Counters
+carry over a restart: the service starts from the last snapshot's.
 """
 
 from __future__ import annotations
@@ -23,13 +25,12 @@ from slamtka.solver.jsonfile import read_json_object
 
 from slamtka.service.config import ServiceConfig, load_config
 from slamtka.service.atomic_files import write_json_atomic
+from slamtka.service.health import STALE_INTERVALS, judge, prometheus_text
 from slamtka.service.tls import client_ssl_context
 
 log = logging.getLogger("slamtka.status")
 
-__all__ = ["Metrics", "StatusBoard", "echo", "prometheus_text", "add_status_parser"]
-
-STALE_AFTER_S = 30.0  # a snapshot older than this means the service is not running
+__all__ = ["Metrics", "StatusBoard", "echo", "read_status", "add_status_parser"]
 _COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
             "duplicate": "instances_duplicate", "view_unusable": "views_unusable",
             "association_rejected": "associations_rejected",
@@ -42,9 +43,13 @@ _COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
 class Metrics:
     """Counters fed by the audit log (one source of truth) and pipeline timings."""
 
-    def __init__(self) -> None:
+    def __init__(self, carried: dict | None = None) -> None:
+        """``carried``: the counters of the previous run's last snapshot, continued from."""
         self.counters: Counter[str] = Counter({name: 0 for name in _COUNTED.values()})
         self.counters.update({"runs_measured": 0, "runs_not_measured": 0})
+        for name, value in (carried or {}).items():
+            if name in self.counters and isinstance(value, int) and value >= 0:
+                self.counters[name] = value
         self.run_seconds: list[float] = []
         self._lock = threading.Lock()
 
@@ -70,8 +75,9 @@ class Metrics:
 class StatusBoard:
     """Builds and writes the status snapshot; ``sources`` are callables returning sections."""
 
-    def __init__(self, path: Path, sources: dict, interval_s: float = 5.0):
+    def __init__(self, path: Path, sources: dict, interval_s: float = 2.0):
         self.path, self.sources, self.interval_s = Path(path), sources, interval_s
+        self.last: dict | None = None  # the snapshot last written (the HTTP endpoint reads it)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -87,8 +93,10 @@ class StatusBoard:
     def write(self) -> dict:
         with self._lock:
             doc = {"updated": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
-                   "pid": os.getpid(), **{name: source() for name, source in self.sources.items()}}
+                   "stale_after_s": STALE_INTERVALS * self.interval_s, "pid": os.getpid(),
+                   **{name: source() for name, source in self.sources.items()}}
             write_json_atomic(self.path, doc)
+            self.last = doc
             return doc
 
     def start(self) -> None:
@@ -107,32 +115,7 @@ class StatusBoard:
         if final is not None:
             with self._lock:
                 write_json_atomic(self.path, final)
-
-
-def prometheus_text(status: dict) -> str:
-    """Counters and gauges of a status snapshot in the Prometheus text exposition format."""
-    lines = []
-    up = 1 if status.get("state") == "running" else 0
-    lines += ["# HELP slamtka_up 1 when the service is running", "# TYPE slamtka_up gauge",
-              f"slamtka_up {up}"]
-    for name, value in sorted((status.get("metrics") or {}).items()):
-        if value is None:
-            continue
-        kind = "gauge" if name.startswith("run_seconds") else "counter"
-        metric = f"slamtka_{name}" + ("_total" if kind == "counter" else "")
-        lines += [f"# TYPE {metric} {kind}", f"{metric} {value}"]
-    gauges = {"spool_instances": (status.get("spool") or {}).get("instances"),
-              "send_queue_pending": (status.get("queue") or {}).get("pending"),
-              "send_queue_failed": (status.get("queue") or {}).get("failed"),
-              "cases": len(status.get("cases") or [])}
-    for name, value in gauges.items():
-        if value is not None:
-            lines += [f"# TYPE slamtka_{name} gauge", f"slamtka_{name} {value}"]
-    link = (status.get("link") or {}).get("status")
-    if link:
-        lines += ["# TYPE slamtka_encoder_link_connected gauge",
-                  f"slamtka_encoder_link_connected {1 if link == 'connected' else 0}"]
-    return "\n".join(lines) + "\n"
+                self.last = final
 
 
 def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0) -> tuple[bool, str]:
@@ -168,16 +151,9 @@ def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0
     return True, f"C-ECHO {config.dicom.ae_title}@{address}:{config.dicom.port}: success"
 
 
-def _age_s(status: dict) -> float:
-    updated = datetime.fromisoformat(status["updated"])
-    return (datetime.now(timezone.utc) - updated).total_seconds()
-
-
 def _describe(status: dict) -> str:
-    age = _age_s(status)
-    state = status.get("state", "unknown")
-    if state == "running" and age > STALE_AFTER_S:
-        state = f"not responding (last update {age:.0f} s ago)"
+    health = judge(status)
+    state = "running" if health.up else f"DOWN: {health.reason}"
     d = status.get("dicom", {})
     lines = [f"slamtka service: {state} (pid {status.get('pid')}, since {status.get('started')})",
              f"  DICOM: {d.get('ae_title')} on {d.get('address')}:{d.get('port')}"
@@ -208,30 +184,28 @@ def _describe(status: dict) -> str:
     return "\n".join(lines)
 
 
-def _read_status(path: Path) -> dict:
-    """The status snapshot; a damaged one (e.g. the disk filled mid-write) is named."""
-    return read_json_object(path)
+def read_status(path: Path) -> dict | None:
+    """The status snapshot, None when there is none; a damaged one (e.g. the disk filled
+    mid-write) raises naming the file."""
+    return read_json_object(path) if path.is_file() else None
 
 
 def cmd_status(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    ok = True
-    if config.status_file.is_file():
-        status = _read_status(config.status_file)
-        ok = status.get("state") == "running" and _age_s(status) <= STALE_AFTER_S
-        if args.json:
-            print(json.dumps(status, indent=2))
-        elif args.metrics:
-            print(prometheus_text(status), end="")
-        else:
-            print(_describe(status))
-    else:
-        ok = False
+    status = read_status(config.status_file)
+    ok = judge(status).up
+    if args.metrics:
+        print(prometheus_text(status), end="")
+    elif status is None:
         print(f"no status at {config.status_file}: the service has not run with this configuration")
-    if args.echo:
+    elif args.json:
+        print(json.dumps(status, indent=2))
+    else:
+        print(_describe(status))
+    if args.echo:  # both must hold: a port that answers does not make a stale service healthy
         answered, message = echo(config)
         print(message)
-        ok = answered
+        ok = ok and answered
     return 0 if ok else 1
 
 

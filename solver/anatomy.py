@@ -1,6 +1,6 @@
 """The tibia's anatomical frame and the clinical angles of a resection plane.
 
-Anatomical frame (DESIGN.md section 3): origin at the knee centre, +z the mechanical axis
+Anatomical frame (README.md, Conventions): origin at the knee centre, +z the mechanical axis
 from the ankle centre to the knee centre, +y anterior, +x = y cross z (the patient's right).
 The medial side is therefore -x on a right leg and +x on a left leg.
 

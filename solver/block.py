@@ -1,4 +1,4 @@
-"""Pins through a tibial cutting block, in the tibia's anatomical frame (DESIGN.md section 3).
+"""Pins through a tibial cutting block, in the tibia's anatomical frame (README.md, Conventions).
 
 The block sits on the anteromedial tibia and guides two parallel pins, drilled posteriorly
 in the resection plane. The simulator places them at random angles and offsets, the

@@ -1,6 +1,6 @@
 """The X-ray camera: a pinhole at the X-ray source looking at the detector.
 
-Frame ``cam`` (DESIGN.md section 3): origin at the X-ray source, +z from the source towards
+Frame ``cam`` (README.md, Conventions): origin at the X-ray source, +z from the source towards
 the detector, x/y along image columns/rows. Pixel coordinates ``(u, v)`` have their origin at
 the centre of the top-left pixel. Observed points are assumed already undistorted with the
 C-arm's stored calibration.

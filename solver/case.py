@@ -22,7 +22,7 @@ import numpy as np
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
-from slamtka.solver.imaging import calibration as imaging_calibration
+from slamtka.solver.imaging import calibration_file
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.observations import LABELS, ViewObservation
 from slamtka.solver.plan import Plan
@@ -93,7 +93,7 @@ def _load_calibration(path: Path) -> tuple[Camera, str]:
     undistorted, so the distortion model (needed only for raw frames) is not applied here."""
     if not path.is_file():
         raise ValueError(f"{path}: file missing from the case folder")
-    calibration = imaging_calibration.load_calibration(path)
+    calibration = calibration_file.load_calibration(path)
     return calibration.camera, calibration.calibration_id
 
 
@@ -120,7 +120,7 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
     if any(v.camera != camera for v in views):
         raise ValueError("all views of a case must come from one calibrated C-arm")
     (folder / "calibration.json").write_text(json.dumps(
-        imaging_calibration.calibration_document(camera, calibration_id, "C-arm intrinsics"),
+        calibration_file.calibration_document(camera, calibration_id, "C-arm intrinsics"),
         indent=2))
     contours = {"format": CONTOURS_FORMAT, "units": "px", "views": [
         {"view_id": v.view_id, **{label: np.round(v.contours[label], 3).tolist() for label in LABELS}}

@@ -1,6 +1,6 @@
 """Rigid-body geometry on SO(3) and SE(3).
 
-Conventions (DESIGN.md section 3): a pose ``T_a_b`` maps points from frame b into frame a,
+Conventions (README.md, Conventions): a pose ``T_a_b`` maps points from frame b into frame a,
 ``p_a = R_a_b p_b + t_a_b``; millimetres and radians. Poses are optimised through small
 right-multiplied increments ``T <- T * Exp(xi)`` with ``xi = (rho, phi)``: ``rho`` a translation
 and ``phi`` a rotation vector, both expressed in the pose's *source* frame b. For points that

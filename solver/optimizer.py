@@ -17,9 +17,9 @@ from functools import cached_property
 from typing import Callable, Protocol
 
 import numpy as np
-from scipy import sparse
 
-from slamtka.solver.geometry import Pose, cross
+from slamtka.solver.geometry import Pose
+from slamtka.solver.kernels import schur_complement
 
 __all__ = [
     "SharedError",
@@ -172,31 +172,6 @@ def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return summed
 
 
-def _sum_rows(selector: sparse.csc_matrix, values: np.ndarray) -> np.ndarray:
-    """Rows of ``values`` summed into the bins of a :func:`_selector`: for bins summed into
-    again and again (every trial step of an iteration), where building the selector once
-    pays."""
-    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))
-    return np.asarray(selector @ flat).reshape((selector.shape[0],) + values.shape[1:])
-
-
-def _selector(index: np.ndarray, n: int) -> sparse.csc_matrix:
-    """The (n, len(index)) 0/1 matrix that sums rows into the bins ``index``: the transpose
-    of a matrix with one entry per row, built from its compressed arrays directly (the
-    coordinate form's sorting and checks cost more than the sums)."""
-    rows = len(index)
-    return sparse.csr_matrix((np.ones(rows), index, np.arange(rows + 1)), shape=(rows, n)).T
-
-
-def _inverse_3x3(M: np.ndarray) -> np.ndarray:
-    """Inverses of (X, 3, 3) matrices from their cofactors (much faster than a batched LU
-    for thousands of tiny blocks)."""
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    cofactors = np.stack([cross(r1, r2), cross(r2, r0), cross(r0, r1)], axis=2)
-    det = np.einsum("xi,xi->x", r0, cofactors[:, :, 0])
-    return cofactors / det[:, None, None]
-
-
 @dataclass
 class NormalEquations:
     """Gauss-Newton system ``H d = -g`` split into pose and point blocks."""
@@ -210,12 +185,10 @@ class NormalEquations:
     H_px: np.ndarray  # (K, 6, 3)
 
     @cached_property
-    def coupling(self) -> tuple[np.ndarray, np.ndarray, list, sparse.csc_matrix]:
-        """Each point's coupling blocks padded to a fixed count ``k`` (``W`` (X, k, 6, 3);
-        the dummy pose P fills the gaps in ``pose_of`` (X, k)), for every slot pair a <= b
-        the selector that sums its (6, 6) reductions into the (P+1)^2 pose-pair blocks (the
-        pair b, a is their transpose), and the selector that sums the (X * k) slots by pose.
-        It does not depend on the damping, so the trial steps of one iteration share it."""
+    def coupling(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each point's coupling blocks padded to a fixed count ``k``: ``W`` (X, k, 6, 3)
+        and their poses ``pose_of`` (X, k), the dummy pose P filling the gaps. It does not
+        depend on the damping, so the trial steps of one iteration share it."""
         P, X = len(self.g_p) // 6, len(self.H_xx)
         first = np.searchsorted(self.pair_point, np.arange(X))
         slot = np.arange(len(self.pair_point)) - first[self.pair_point]
@@ -224,9 +197,7 @@ class NormalEquations:
         pose_of = np.full((X, k_max), P)
         W[self.pair_point, slot] = self.H_px
         pose_of[self.pair_point, slot] = self.pair_pose
-        pairs = [(a, b, _selector(pose_of[:, a] * (P + 1) + pose_of[:, b], (P + 1) ** 2))
-                 for a in range(k_max) for b in range(a, k_max)]
-        return W, pose_of, pairs, _selector(pose_of.reshape(-1), P + 1)
+        return W, pose_of
 
 
 def build_normal_equations(
@@ -285,25 +256,11 @@ def _reduced_system(
     H_pp = ne.H_pp + np.diag(lam * np.diag(ne.H_pp) + _POSE_REGULARISATION)
     if len(ne.H_xx) == 0:  # no points to eliminate (the silhouette stages)
         return H_pp, -ne.g_p, np.zeros((0, 3, 3))
-    V = ne.H_xx.copy()
-    diag = np.einsum("xii->xi", V)
-    reg = _POINT_REGULARISATION * np.maximum(diag.sum(axis=1), 1e-9)
-    V[:, np.arange(3), np.arange(3)] += lam * diag + reg[:, None]
-    V_inv = _inverse_3x3(V)
-
-    W, pose_of, pairs, by_pose = ne.coupling
-    Y = W @ V_inv[:, None]  # (X, k, 6, 3)
-    blocks = np.zeros((P + 1, P + 1, 6, 6))
-    for a, b, selector in pairs:
-        reduction = Y[:, a] @ W[:, b].transpose(0, 2, 1)  # (X, 6, 6)
-        summed = _sum_rows(selector, reduction).reshape(P + 1, P + 1, 6, 6)
-        blocks += summed
-        if b != a:  # slot pair (b, a) is the transpose (V_inv is symmetric)
-            blocks += summed.transpose(1, 0, 3, 2)
-    g_shift = _sum_rows(by_pose, np.einsum("xaij,xj->xai", Y, ne.g_x).reshape(-1, 6))
-
-    S = H_pp - blocks[:P, :P].transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
-    rhs = -ne.g_p + g_shift[:P].reshape(-1)
+    W, pose_of = ne.coupling
+    blocks, g_shift, V_inv = schur_complement(ne.H_xx, ne.g_x, W, pose_of, P, lam,
+                                              _POINT_REGULARISATION)
+    S = H_pp - blocks.transpose(0, 2, 1, 3).reshape(6 * P, 6 * P)
+    rhs = -ne.g_p + g_shift.reshape(-1)
     return S, rhs, V_inv
 
 
@@ -315,7 +272,7 @@ def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float)
     d_p[free] = np.linalg.solve(S_free, rhs[free])
     if len(V_inv) == 0:
         return d_p, np.zeros((0, 3))
-    W, pose_of, *_ = ne.coupling
+    W, pose_of = ne.coupling
     d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])
     coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])  # sum_a H_xp d_p
     d_x = -np.einsum("xij,xj->xi", V_inv, ne.g_x + coupled)
@@ -426,7 +383,7 @@ def pose_covariance(
         ids.append(x_idx)
         b.append(w[:, None] * Jx[:, 0, :])
     ids, b = np.concatenate(ids), np.concatenate(b)
-    W, pose_of, *_ = ne.coupling
+    W, pose_of = ne.coupling
     moved = np.einsum("rkij,rj->rki", W[ids] @ V_inv[ids][:, None], b)  # (R, k, 6)
     # Each shared error's pull on every pose: the rows' pulls summed by error and pose.
     n_errors = len(shared.covariance)

@@ -1,6 +1,6 @@
 """The parametric trocar pin that fixes a tibial cutting block.
 
-Pin frame (DESIGN.md section 3): the pin axis is +z, the trocar tip at the origin, the shaft
+Pin frame (README.md, Conventions): the pin axis is +z, the trocar tip at the origin, the shaft
 running to ``z = length``. The tip is the classic three-facet trocar: three planes through the
 tip point, 120 degrees apart, each rising with slope ``tip_length / radius`` towards the
 shaft wall, so the ridges between facets are sharp and the tip is ``tip_length`` long.

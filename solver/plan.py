@@ -10,7 +10,8 @@ Plan folder::
     plan.json        format, patient, side, mesh files with units, landmarks, pin, target,
                      the bone's segmentation error (SD, mm)
     tibia.stl ...    meshes named in plan.json
-    cache/           signed distance fields keyed by mesh hash (safe to delete)
+    cache/           signed distance fields and simplified silhouette meshes, keyed by
+                     mesh hash (safe to delete)
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.meshes import load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.sdf import SignedDistanceField
-from slamtka.solver.silhouette import ContourGenerator
+from slamtka.solver.silhouette import ContourGenerator, simplified
 
 __all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout"]
 
@@ -116,11 +117,8 @@ class RigidModel:
         margin = 8.0 * sdf_spacing_mm
         sdf = SignedDistanceField.cached(meshes, sdf_spacing_mm, margin, cache_dir)
         combined = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
-        if len(combined.faces) > _SILHOUETTE_MAX_FACES:
-            combined = combined.simplify_quadric_decimation(face_count=_SILHOUETTE_MAX_FACES)
-        coarse = combined
-        if len(combined.faces) > _SEARCH_MAX_FACES:
-            coarse = combined.simplify_quadric_decimation(face_count=_SEARCH_MAX_FACES)
+        combined = simplified(combined, _SILHOUETTE_MAX_FACES, cache_dir)
+        coarse = simplified(combined, _SEARCH_MAX_FACES, cache_dir)
         return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined),
                           ContourGenerator.from_mesh(coarse))
 

@@ -22,9 +22,9 @@ import igl
 import numpy as np
 import trimesh
 
-from slamtka.solver.geometry import row_norms
+from slamtka.solver.kernels import trilinear
 
-__all__ = ["SignedDistanceField", "mesh_digest", "MAX_GRID_VOXELS"]
+__all__ = ["SignedDistanceField", "mesh_digest", "write_arrays", "UNREADABLE_CACHE", "MAX_GRID_VOXELS"]
 
 log = logging.getLogger(__name__)
 
@@ -34,11 +34,16 @@ _CACHE_VERSION = 1
 # interpolated from a grid this many times coarser (its sign and slope are all that matter).
 _BAND_VOXELS = 6
 _COARSE_FACTOR = 4
-# Largest grid built. Building peaks at about 300 bytes per voxel (1.1 GB for the phantom's
-# 3.1 million voxels: tibia with fibula at 1 mm); the knee-smith2019 meshes need 0.8 million
-# and a large full-length leg about 6 million. 12 million (about 4 GB) leaves that margin while
-# refusing meshes far apart or in the wrong units, which would exhaust the memory.
+# Largest grid built (4 bytes per voxel, sampled in slabs): the phantom's tibia with fibula at
+# 1 mm needs 3.1 million voxels, the knee-smith2019 meshes 0.8 million and a large
+# full-length leg about 6 million. 12 million leaves that margin while refusing meshes far
+# apart or in the wrong units.
 MAX_GRID_VOXELS = 12_000_000
+# Grid points sampled at once while building: bounds the build's peak memory (libigl's
+# outputs take about 300 bytes per point) to some 80 MB over the grid itself.
+_SLAB_POINTS = 262_144
+# What reading a damaged or truncated cache entry raises.
+UNREADABLE_CACHE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
 
 def mesh_digest(meshes: list[trimesh.Trimesh]) -> str:
@@ -78,6 +83,24 @@ def _exact_signed_distance(
     return result
 
 
+def write_arrays(path: Path, **arrays: np.ndarray) -> None:
+    """Write ``arrays`` to an ``.npz`` cache entry atomically, so a crash never leaves a
+    truncated entry behind; each writer has its own temporary file, so processes building
+    the same entry at once (parallel test workers, a study's worker pool) cannot move each
+    other's file away. Uncompressed: zlib saved 15% of a distance field's size and cost
+    ~100 ms per load."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".npz")
+    try:
+        with os.fdopen(fd, "wb") as stream:
+            np.savez(stream, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 @dataclass(frozen=True)
 class SignedDistanceField:
     """A signed distance field on a regular grid: ``values[i, j, k]`` at ``origin + spacing*(i, j, k)``."""
@@ -91,7 +114,11 @@ class SignedDistanceField:
     def build(
         meshes: list[trimesh.Trimesh], spacing_mm: float, margin_mm: float
     ) -> SignedDistanceField:
-        """Sample the field of the union of ``meshes`` over their bounds plus ``margin_mm``."""
+        """Sample the field of the union of ``meshes`` over their bounds plus ``margin_mm``.
+
+        The grid is sampled a slab of x-planes at a time (``_SLAB_POINTS``): libigl's
+        per-point outputs (closest points, normals) and the points themselves would
+        otherwise take about 300 bytes per voxel at once (1.1 GB for the phantom)."""
         lo = np.min([m.bounds[0] for m in meshes], axis=0) - margin_mm
         hi = np.max([m.bounds[1] for m in meshes], axis=0) + margin_mm
         shape = np.ceil((hi - lo) / spacing_mm).astype(int) + 1
@@ -105,18 +132,27 @@ class SignedDistanceField:
         coarse = SignedDistanceField._sample(meshes, lo, spacing_mm * _COARSE_FACTOR,
                                              shape // _COARSE_FACTOR + 2, band_mm=None)
         fine = SignedDistanceField._sample(meshes, lo, spacing_mm, shape,
-                                           band_mm=_BAND_VOXELS * spacing_mm)
-        far = np.isnan(fine.values)
-        values = fine.values.copy()
-        if far.any():  # a small model's band may cover the whole grid
-            values[far] = coarse.query(fine.grid_points()[far.ravel()])[0]
-        return SignedDistanceField(lo, spacing_mm, values.astype(np.float32), mesh_digest(meshes))
+                                           band_mm=_BAND_VOXELS * spacing_mm, far_field=coarse)
+        return SignedDistanceField(lo, spacing_mm, fine.values, mesh_digest(meshes))
 
     @staticmethod
-    def _sample(meshes, origin, spacing, shape, band_mm) -> SignedDistanceField:
+    def _sample(meshes: list[trimesh.Trimesh], origin: np.ndarray, spacing: float,
+                shape: np.ndarray, band_mm: float | None,
+                far_field: SignedDistanceField | None = None) -> SignedDistanceField:
+        """Exact distances on the grid, slab by slab; beyond ``band_mm`` NaN, or the value
+        interpolated from ``far_field`` when given (its sign and slope are all that matter)."""
         field = SignedDistanceField(origin, spacing, np.zeros(tuple(shape), np.float32), "")
-        values = _exact_signed_distance(field.grid_points(), meshes, band_mm)
-        return SignedDistanceField(origin, spacing, values.reshape(tuple(shape)), "")
+        plane = int(shape[1]) * int(shape[2])
+        step = max(1, _SLAB_POINTS // plane)
+        for first in range(0, int(shape[0]), step):
+            planes = slice(first, min(first + step, int(shape[0])))
+            points = field.grid_points(planes)
+            values = _exact_signed_distance(points, meshes, band_mm)
+            far = np.isnan(values)
+            if far_field is not None and far.any():
+                values[far] = far_field.query(points[far], gradient=False)[0]
+            field.values[planes] = values.reshape((-1,) + tuple(shape[1:]))
+        return field
 
     @staticmethod
     def cached(
@@ -132,7 +168,7 @@ class SignedDistanceField:
         if path.exists():
             try:
                 return SignedDistanceField.load(path)
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            except UNREADABLE_CACHE as exc:
                 # The cache is documented as safe to delete: a damaged entry is rebuilt.
                 log.warning("%s: unreadable cached distance field (%s); rebuilding it", path, exc)
         field = SignedDistanceField.build(meshes, spacing_mm, margin_mm)
@@ -143,25 +179,15 @@ class SignedDistanceField:
         """(2, 3) lower and upper corners of the sampled box, model frame, mm."""
         return np.vstack([self.origin, self.origin + self.spacing * (np.array(self.values.shape) - 1)])
 
-    def grid_points(self) -> np.ndarray:
+    def grid_points(self, planes: slice = slice(None)) -> np.ndarray:
+        """Model-frame points (N, 3) of the grid's x-planes ``planes``, in ``values`` order."""
         axes = [self.origin[a] + self.spacing * np.arange(n) for a, n in enumerate(self.values.shape)]
+        axes[0] = axes[0][planes]
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
     def save(self, path: Path) -> None:
-        """Write atomically so a crash never leaves a truncated cache entry behind; each writer
-        has its own temporary file, so processes building the same entry at once (parallel
-        test workers, a study's worker pool) cannot move each other's file away."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".npz")
-        try:
-            with os.fdopen(fd, "wb") as stream:
-                np.savez_compressed(stream, origin=self.origin, spacing=self.spacing,
-                                    values=self.values, digest=np.array(self.digest))
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_arrays(path, origin=self.origin, spacing=self.spacing, values=self.values,
+                     digest=np.array(self.digest))
 
     @staticmethod
     def load(path: Path) -> SignedDistanceField:
@@ -178,44 +204,6 @@ class SignedDistanceField:
         true distance) and the gradient points back towards the grid, so far-away points are
         still pulled towards the model.
         """
-        shape = np.array(self.values.shape)
-        g = (np.asarray(points, float) - self.origin) / self.spacing
-        upper = shape - 1 - 1e-9
-        g_clamped = np.clip(g, 0.0, upper)
-        i0 = np.floor(g_clamped).astype(np.int64)
-        f = g_clamped - i0
-        _, ny, nz = self.values.shape
-        flat = self.values.ravel()
-        base = (i0[:, 0] * ny + i0[:, 1]) * nz + i0[:, 2]
-        # The eight cell corners (8, N), (x, y, z) offsets 0/1 in binary order: corner[4a +
-        # 2b + c], gathered at once; the interpolation then runs on pairs of rows (z-pairs,
-        # then y-pairs) rather than on each corner.
-        offsets = np.array([(a * ny + b) * nz + c for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        corner = flat.take(offsets[:, None] + base).astype(float)
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        # Interpolate along z, then y, then x, keeping the partial derivatives exact.
-        dz = corner[1::2] - corner[0::2]
-        cz = corner[0::2] + dz * fz  # c00, c01, c10, c11
-        dy = cz[1::2] - cz[0::2]
-        cy = cz[0::2] + dy * fy  # c0, c1
-        dx = cy[1] - cy[0]
-        value = cy[0] + dx * fx
-        beyond = g.min() < 0 or np.any(g.max(axis=0) > upper)
-        if beyond:
-            outside = (g - g_clamped) * self.spacing
-            dist_out = row_norms(outside)
-            value = value + dist_out
-        if not gradient:
-            return value, None
-        # d/dy and d/dz on the cell's two x faces (x = 0, 1), then blended along x.
-        slopes = np.concatenate([dy, dz[0::2] + (dz[1::2] - dz[0::2]) * fy])
-        grad = np.empty((3, len(value)))
-        grad[0] = dx
-        grad[1:] = slopes[0::2] * (1 - fx) + slopes[1::2] * fx
-        grad = grad.T / self.spacing
-        if beyond:
-            far = dist_out > 0
-            # Clamped axes no longer move the interpolant; the distance outside takes over.
-            grad[outside != 0] = 0.0
-            grad[far] += outside[far] / dist_out[far, None]
-        return value, grad
+        value, grad = trilinear(self.values, np.asarray(self.origin, float), float(self.spacing),
+                                np.ascontiguousarray(points, dtype=float).reshape(-1, 3), gradient)
+        return value, (grad if gradient else None)

@@ -1,7 +1,7 @@
 """Global initialisation: the patient set-up error, searched for once for all views.
 
 The encoders tell how the C-arm moved between views far better than where the patient lies
-(DESIGN.md section 4): the large error of the initial guess is one rigid error of the
+(docs/solver.md): the large error of the initial guess is one rigid error of the
 tibia, shared by every view. It can be tens of degrees, which no local method recovers, so
 it is searched for exhaustively, with each view's image telling how well a hypothesis fits:
 

@@ -9,8 +9,10 @@ project onto the boundary of the model's projected footprint.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,8 +20,12 @@ import trimesh
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, box_corners, row_norms
+from slamtka.solver.kernels import footprint_mask
+from slamtka.solver.sdf import UNREADABLE_CACHE, mesh_digest, write_arrays
 
-__all__ = ["ContourGenerator", "INTERIOR_REUSE_PX"]
+__all__ = ["ContourGenerator", "INTERIOR_REUSE_PX", "simplified"]
+
+log = logging.getLogger(__name__)
 
 # Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution.
 _MASK_DOWNSCALE = 4
@@ -32,6 +38,27 @@ def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For consecutive runs of ``counts`` elements: each element's run and its place in it."""
     owner = np.repeat(np.arange(len(counts)), counts)
     return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def simplified(mesh: trimesh.Trimesh, max_faces: int, cache_dir: Path | None) -> trimesh.Trimesh:
+    """``mesh`` decimated to at most ``max_faces`` faces (itself when it has no more),
+    cached in ``cache_dir`` keyed by its hash: decimating a bone takes ~70 ms, which a
+    plan's load in the operating room should not pay."""
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"simplified-{mesh_digest([mesh])[:24]}-{max_faces}.npz"
+        if path.exists():
+            try:
+                with np.load(path) as data:
+                    return trimesh.Trimesh(data["vertices"], data["faces"], process=False)
+            except UNREADABLE_CACHE as exc:
+                log.warning("%s: unreadable cached mesh (%s); simplifying again", path, exc)
+    light = mesh.simplify_quadric_decimation(face_count=max_faces)
+    if path is not None:
+        write_arrays(path, vertices=np.asarray(light.vertices), faces=np.asarray(light.faces))
+    return light
 
 
 @dataclass(frozen=True)
@@ -109,41 +136,8 @@ class ContourGenerator:
         # less than finding the distinct ones.
         uv = (camera.project(T_cam_model.apply(self.vertices[edges.reshape(-1)])) / downscale
               ).reshape(-1, 2, 2)
-        a, b = uv[:, 0], uv[:, 1]
-        uv = uv.reshape(-1, 2)
-        # Only the outline's bounding box (within the image) is accumulated: outside it no
-        # row is crossed, and left of every crossing the winding number is zero.
-        (left, upper), (right, lower) = (np.clip(np.ceil(uv.min(axis=0)), 0, [width, height]),
-                                         np.clip(np.ceil(uv.max(axis=0)), 0, [width, height]))
-        left, upper, right, lower = int(left), int(upper), int(right), int(lower)
-        # Each edge crosses the rows whose centre lies in [top, bottom) of its span.
-        downwards = b[:, 1] > a[:, 1]
-        top = np.where(downwards[:, None], a, b)
-        bottom = np.where(downwards[:, None], b, a)
-        first_row = np.clip(np.ceil(top[:, 1]), 0, height).astype(np.int64)
-        rows_crossed = np.clip(np.ceil(bottom[:, 1]), 0, height).astype(np.int64) - first_row
-        edge, place = _runs(rows_crossed)
-        row = first_row[edge] + place - upper
-        fraction = (row + upper - top[edge, 1]) / (bottom[edge, 1] - top[edge, 1])
-        x = top[edge, 0] + fraction * (bottom[edge, 0] - top[edge, 0])
-        column = np.clip(np.ceil(x), left, right).astype(np.int64) - left
-        box_h, box_w = lower - upper, right - left
-        crossings = np.bincount(row * (box_w + 1) + column,
-                                weights=np.where(downwards, 1.0, -1.0)[edge],
-                                minlength=box_h * (box_w + 1)).reshape(box_h, box_w + 1)
-        mask = np.zeros((height, width), np.uint8)
-        mask[upper:lower, left:right] = np.abs(np.cumsum(crossings, axis=1)[:, :box_w]) > 0.5
-        # Pixels the outline passes through belong to the footprint too, as when faces are
-        # filled with their edges drawn: an outline point always falls in a footprint pixel.
-        delta = b - a
-        steps = np.ceil(np.max(np.abs(delta), axis=1)).astype(np.int64) + 1
-        along, place = _runs(steps)
-        s = place / (steps[along] - 1).clip(1)
-        on_outline = np.round(a[along] + s[:, None] * delta[along]).astype(np.int64)
-        inside = ((on_outline[:, 0] >= 0) & (on_outline[:, 0] < width)
-                  & (on_outline[:, 1] >= 0) & (on_outline[:, 1] < height))
-        mask[on_outline[inside, 1], on_outline[inside, 0]] = 1
-        return mask
+        return footprint_mask(np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]),
+                              height, width)
 
     @cached_property
     def bounding_box_corners(self) -> np.ndarray:

@@ -1,6 +1,6 @@
 """The joint solver: both C-arm views, both pins and every edge point at once.
 
-Problem layout (DESIGN.md section 4): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
+Problem layout (docs/solver.md): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
 T_tibia_pin1, T_tibia_pin2]`` and one 3D point per kept contour pixel (bone points in the
 tibia frame, pin points in their pin's frame). The schedule:
 
@@ -711,12 +711,16 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     """One solve of the configured method from ``poses``, with its gates and uncertainty."""
     n = problem.n_views
     # Global step, shared by every method: where in each image is the bone? The views are
-    # searched in parallel threads (OpenCV's template correlation releases the GIL).
+    # searched in parallel threads (OpenCV's template correlation releases the GIL), each
+    # also building its pins' distance maps there (OpenCV's distance transform releases it
+    # too: 10-20 ms each, which the later stages would otherwise build one after another).
+    def aligned(T: Pose, view: ViewObservation) -> Pose:
+        for label in PIN_LABELS:
+            view.distance_map(label)
+        return align_view_in_image(problem.bone.contour, T, view.camera, view.distance_map("bone"))
+
     with ThreadPoolExecutor(n) as pool:
-        aligned = pool.map(lambda T, view: align_view_in_image(
-            problem.bone.contour, T, view.camera, view.distance_map("bone")),
-            poses[:n], problem.views)
-        poses = tuple(aligned) + poses[n:]
+        poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
     schedule = _Schedule(problem, initial, callback)
     state, terms, fine = schedule.run(problem.config.method, State(poses, np.zeros((0, 3))))
     report = SolveReport(fine.converged, fine.reason, schedule.iterations, fine.cost,

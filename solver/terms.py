@@ -1,4 +1,4 @@
-"""The energy terms of the joint solver (DESIGN.md section 4), with analytic Jacobians.
+"""The energy terms of the joint solver (docs/solver.md), with analytic Jacobians.
 
 Each term concerns one view and one rigid body (the bone, or one pin) and returns whitened
 residuals (divided by the expected noise ``sigma``) for :mod:`solver.optimizer`:
@@ -21,10 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
+from slamtka.solver.kernels import nearest_points
 from slamtka.solver.observations import DistanceMap
 from slamtka.solver.optimizer import Linearization, RobustLoss, State
 from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
@@ -235,9 +235,8 @@ class ModelProjectionTerm:
             uv = self.camera.project(p_cam)
         dist, grad = self.distance_map.query(uv)
         if jacobians or self._nearest is None:
-            # A few hundred points, queried once: an unbalanced, uncompacted tree builds faster.
-            tree = cKDTree(uv, balanced_tree=False, compact_nodes=False)
-            self._nearest = tree.query(self.observed)[1]
+            # Binned at twice the outline's spacing: a few points per occupied cell.
+            self._nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
         nearest = self._nearest
         offset = uv[nearest] - self.observed
         nearest_dist = row_norms(offset)

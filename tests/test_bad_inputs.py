@@ -23,7 +23,7 @@ from slamtka.service.frames import Frame, FrameError, decode_frame, encode_frame
 from slamtka.solver.camera import Camera
 from slamtka.solver.case import load_case, write_case
 from slamtka.solver.geometry import Pose
-from slamtka.solver.imaging.calibration import CalibrationError, _digest, load_calibration, write_calibration
+from slamtka.solver.imaging.calibration_file import CalibrationError, _digest, load_calibration, write_calibration
 from slamtka.solver.observations import ViewObservation
 from slamtka.sim.simulate import default_camera
 from slamtka.solver.slam import InitialGuess

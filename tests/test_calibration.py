@@ -27,14 +27,8 @@ from slamtka.service.scp import DicomReceiver
 from slamtka.service.spool import Spool
 from service_testing import free_port, small_frame
 from slamtka.solver.camera import Camera
-from slamtka.solver.imaging.calibration import (
-    CalibrationError,
-    CalibrationImage,
-    CalibrationOptions,
-    calibrate,
-    load_calibration,
-    write_calibration,
-)
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
 from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
 from slamtka.solver.imaging.plate import PhantomSpec
 from slamtka.sim.xray import default_distortion
@@ -180,7 +174,7 @@ def _calibration(tmp_path, name: str, device: dict, field: float | None = None, 
     camera = Camera(300.0, 300.0, size / 2, size / 2, size, size)
     written = write_calibration(tmp_path / f"{name}.json", camera, None, "test", name, (0.3, 0.3))
     doc = written.document()
-    from slamtka.solver.imaging.calibration import assign_device
+    from slamtka.solver.imaging.calibration_file import assign_device
 
     (tmp_path / f"{name}.json").write_text(json.dumps(assign_device(doc, device, field)))
     return load_calibration(tmp_path / f"{name}.json")

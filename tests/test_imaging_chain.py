@@ -14,15 +14,8 @@ from scipy.spatial import cKDTree
 from slamtka.bench.imaging import contour_scores, residual_distortion_px
 from slamtka.service.cli import main
 from slamtka.solver.camera import Camera
-from slamtka.solver.imaging.calibration import (
-    CalibrationError,
-    CalibrationImage,
-    CalibrationOptions,
-    calibrate,
-    load_calibration,
-    match_grid,
-    write_calibration,
-)
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate, match_grid
 from slamtka.solver.imaging.ballgrid import GridError
 from slamtka.solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
 from slamtka.solver.imaging.distortion import Distortion

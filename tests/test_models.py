@@ -132,3 +132,62 @@ def test_footprint_is_the_union_of_front_faces(open_mesh):
     found = mask[pixels[:, 1], pixels[:, 0]] == 1
     assert expected.sum() > 1000
     assert np.mean(found == expected) > 0.995  # pixel centres exactly on an edge may go either way
+
+
+def test_sdf_is_built_in_bounded_slabs_with_the_same_values(monkeypatch):
+    """Building samples a bounded number of grid points at once (the build's peak memory),
+    and the slabs add up to the field of one pass over the grid."""
+    import slamtka.solver.sdf as sdf_module
+
+    pin = build_pin()
+    whole = SignedDistanceField.build([pin], 0.2, 1.6)
+    sampled: list[int] = []
+    exact = sdf_module._exact_signed_distance
+
+    def spy(points, meshes, band_mm):
+        sampled.append(len(points))
+        return exact(points, meshes, band_mm)
+
+    monkeypatch.setattr(sdf_module, "_exact_signed_distance", spy)
+    monkeypatch.setattr(sdf_module, "_SLAB_POINTS", 20_000)
+    slabbed = SignedDistanceField.build([pin], 0.2, 1.6)
+    assert whole.values.size > 10 * 20_000 and max(sampled) <= 20_000
+    np.testing.assert_allclose(slabbed.values, whole.values, atol=1e-5)
+
+
+def test_simplified_silhouette_mesh_is_cached_beside_the_plan(tmp_path, monkeypatch):
+    """A plan's load in the operating room reads its simplified meshes, never decimates."""
+    from slamtka.solver.silhouette import simplified
+
+    sphere = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
+    light = simplified(sphere, 1000, tmp_path)
+    assert len(light.faces) <= 1000 and len(list(tmp_path.glob("simplified-*.npz"))) == 1
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("decimated again although the plan's cache holds the mesh")
+
+    monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", refuse)
+    again = simplified(sphere, 1000, tmp_path)
+    np.testing.assert_array_equal(again.faces, light.faces)
+    np.testing.assert_allclose(again.vertices, light.vertices)
+    assert simplified(sphere, 6000, tmp_path) is sphere  # small enough already
+
+
+def test_sdf_query_matches_the_trilinear_interpolant_inside_and_beyond_the_grid():
+    """The compiled lookup is the trilinear interpolant of the grid, plus the distance to
+    the grid outside it (written here with plain numpy, one corner at a time)."""
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(4, 5, 6)).astype(np.float32)
+    field = SignedDistanceField(np.array([1.0, -2.0, 0.5]), 0.5, values, "")
+    points = rng.uniform([0.0, -3.0, -0.5], [3.5, 1.0, 4.5], (400, 3))  # some beyond the grid
+    g = (points - field.origin) / field.spacing
+    clamped = np.clip(g, 0.0, np.array(values.shape) - 1 - 1e-9)
+    i, f = np.floor(clamped).astype(int), clamped - np.floor(clamped)
+    expected = np.zeros(len(points))
+    for corner in np.ndindex(2, 2, 2):
+        weight = np.prod(np.where(np.array(corner) == 1, f, 1 - f), axis=1)
+        expected += weight * values[i[:, 0] + corner[0], i[:, 1] + corner[1], i[:, 2] + corner[2]]
+    expected += np.linalg.norm((g - clamped) * field.spacing, axis=1)
+    value, grad = field.query(points)
+    np.testing.assert_allclose(value, expected, atol=1e-6)
+    assert grad.shape == (len(points), 3) and np.all(np.isfinite(grad))

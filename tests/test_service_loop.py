@@ -54,7 +54,7 @@ class Loop:
     """A spool, cases, the pipeline and the workflow in ``root`` (no network)."""
 
     def __init__(self, root, th: Theatre, calibration_path, new_set_on_new_series=False):
-        from slamtka.solver.imaging.calibration import load_calibration
+        from slamtka.solver.imaging.calibration_file import load_calibration
 
         from slamtka.service.pipeline import Pipeline
 
@@ -303,7 +303,7 @@ def test_overlay_text_wraps_and_is_never_cut():
 
 
 def test_pin_disagreement_grows_with_a_turn_of_the_pins(rendered):
-    from slamtka.solver.imaging.calibration import load_calibration
+    from slamtka.solver.imaging.calibration_file import load_calibration
     from slamtka.solver.imaging.contours import extract_contours
     from slamtka.solver.measurement import pin_axis_points
     from slamtka.drivers.kinematics import initial_view_poses

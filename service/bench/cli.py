@@ -1,4 +1,4 @@
-"""``slamtka bench accuracy``: the simulation study of DESIGN.md section 5.
+"""``slamtka bench accuracy``: the simulation study of docs/evaluation.md.
 
 Each run simulates a fresh case (2 px contour noise by default, initial-state noise at the
 chosen level: rotation SD 0.1 rad x level, translation SD 20 mm x level), solves it and
@@ -200,7 +200,7 @@ def _methods(text: str) -> list[str]:
 def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print figures")
     kinds = bench.add_subparsers(dest="bench", required=True)
-    p = kinds.add_parser("accuracy", help="the simulation study of DESIGN.md section 5")
+    p = kinds.add_parser("accuracy", help="the simulation study of docs/evaluation.md")
     p.add_argument("--runs", type=int, default=10)
     p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=[1, 2, 3, 4, 5])
     p.add_argument("--methods", type=_methods, default=["slam"],

@@ -16,7 +16,7 @@
   inside the field margin and outside the pins' shadows), pins found and correctly
   labelled, extraction seconds per frame;
 - end to end: frames -> contours -> undistortion -> ``solve_joint`` at initial-noise
-  levels of DESIGN.md section 5: absolute CTR/STR errors.
+  levels of docs/evaluation.md: absolute CTR/STR errors.
 
 Prints a summary and writes ``imaging.json``.
 """

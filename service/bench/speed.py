@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slamtka.solver import kernels
 from slamtka.solver.plan import Plan
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.slam import SolverConfig, solve_joint
@@ -84,6 +85,7 @@ def run_speed(args: argparse.Namespace) -> int:
                                                                       args.landmarks)
     plan.bone_model()
     plan.pin_model()
+    kernels.warm_up()  # as the service does at its start
     runs = [_timed_solve(plan, args.seed + i, args.level) for i in range(args.cases)]
     peak_mb = _peak_allocation_mb(plan, args.seed, args.level)
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

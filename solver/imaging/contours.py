@@ -27,7 +27,8 @@ towards +u (image right): with ``pin_order = "left_to_right"`` pin 1 is the pin 
 centre comes first. Mobile C-arm views of a knee look from behind within +-90 deg of AP with
 the knee up, so the pin nearer the patient's -x (anatomical frame) comes first in every view;
 a C-arm that mirrors its images uses ``"right_to_left"``. When an initial pose is known,
-``expected_pins`` (the projected centres of pin 1 and pin 2) overrides the rule.
+``expected_pins`` (the projected centres of pin 1 and pin 2) overrides the rule where it
+tells the two pins apart clearly (its pose error is ~150 px at the pins).
 
 Manual contours (the in-vivo protocol had the surgeon draw them) are read by
 :func:`load_manual_contours`.
@@ -44,6 +45,7 @@ import numpy as np
 
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.imaging.field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
+from slamtka.solver.imaging.response import linearised_attenuation
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]
@@ -328,16 +330,25 @@ _PAIR_MAX_ANGLE_DEG = 8.0
 _PAIR_MAX_WIDTH_RATIO = 1.4
 
 
+# How far (px) pins are commonly found from their centres projected at the initial pose
+# (encoder set-up error: ~6 deg and 20 mm at level 1, ~150 px at the pins).
+_EXPECTED_PIN_SPREAD_PX = 150.0
+
+
 def _robust_width(bar: _Bar, points: np.ndarray) -> float:
     across = (points - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
     return 4.0 * float(np.median(np.abs(across)))
 
 
-def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | None:
+def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], expected: np.ndarray | None = None
+                   ) -> tuple[int, int] | None:
     """The two shadows most alike in direction and width (the block's parallel pins), or
-    None when no two are alike enough to be the pins."""
+    None when no two are alike enough to be the pins. With ``expected`` pin centres (the
+    initial pose's projection), a pair far from them costs more: a retractor blade seen
+    edge-on is as straight as a pin, but not where the plan puts the pins."""
     best, best_cost = None, np.inf
     widths = [_robust_width(bar, points) for bar, points in fitted]
+    where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
@@ -346,6 +357,11 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]]) -> tuple[int, int] | N
             if angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO:
                 continue
             cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if where is not None:
+                a, b = fitted[i][0].centre, fitted[j][0].centre
+                off = min(np.linalg.norm(a - where[0]) + np.linalg.norm(b - where[1]),
+                          np.linalg.norm(a - where[1]) + np.linalg.norm(b - where[0]))
+                cost += 0.5 * off / _EXPECTED_PIN_SPREAD_PX
             if cost < best_cost:
                 best, best_cost = (i, j), cost
     return best
@@ -365,7 +381,11 @@ def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | 
         expected = np.asarray(expected, float).reshape(2, 2)
         cost = [np.linalg.norm(bars[0].centre - expected[0]) + np.linalg.norm(bars[1].centre - expected[1]),
                 np.linalg.norm(bars[0].centre - expected[1]) + np.linalg.norm(bars[1].centre - expected[0])]
-        return bars if cost[0] <= cost[1] else bars[::-1]
+        # The initial pose is off by ~150 px at the pins: only a clear difference decides;
+        # otherwise the rule (6 of 102 simulated operating-room frames were labelled
+        # wrongly by a narrow margin of the expected centres, right by the rule).
+        if abs(cost[0] - cost[1]) >= _EXPECTED_PIN_SPREAD_PX:
+            return bars if cost[0] <= cost[1] else bars[::-1]
     axis = bars[0].direction + np.sign(bars[0].direction @ bars[1].direction) * bars[1].direction
     axis = axis * (1 if axis[0] >= 0 else -1)
     first = bars if bars[0].centre @ axis <= bars[1].centre @ axis else bars[::-1]
@@ -452,7 +472,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     pixels = np.column_stack([xs, ys]).astype(float)
     shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
     fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
-    pair = _parallel_pair(fitted)
+    pair = _parallel_pair(fitted, expected)
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
@@ -577,6 +597,10 @@ _GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD
 _MAX_SMOOTHING_PX = 4.0
 
 
+# How far inside an intensifier's rim a processed frame is left out: unsharp masking of
+# 6-30 px leaves the rim's halo there (coverage of the true outline on 18 simulated
+# processed frames: 55% with none, 62% with 40 px; bone median within 3 px: 8 -> 10 frames).
+_PROCESSED_RIM_HALO_PX = 40.0
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
@@ -600,9 +624,14 @@ def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np
     if sub.size == 0:
         return np.zeros_like(valid)
     opaque = (valid & (A > float(np.median(sub)) + config.opaque_excess)).astype(np.uint8)
-    size = int(2 * config.pin_width_px[1] + 1) | 1
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    broad = cv2.morphologyEx(opaque, cv2.MORPH_OPEN, kernel)
+    # Opened by a disk wider than any pin, through two distance transforms: eroded where
+    # the nearest clear pixel is further than its radius, then grown back by it. The same
+    # mask as cv2.morphologyEx with a 91 px ellipse but for a few rim pixels, in a fifth
+    # of its time (it was a third of an extraction).
+    radius = int(config.pin_width_px[1])
+    inner = cv2.distanceTransform(opaque, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius
+    grown = cv2.distanceTransform((~inner).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    broad = (grown <= radius).astype(np.uint8)
     return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
 
 
@@ -627,7 +656,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
 
     ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
-    initial pose) that decide the labels instead of ``config.pin_order``. Whatever the
+    initial pose) that decide the labels instead of ``config.pin_order`` where they are
+    clear, and favour the pin pair near them. Whatever the
     frame, the only error raised is :class:`ContourError`, with the reason.
     """
     try:
@@ -654,7 +684,6 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     h, w = image.shape
     image, overlay = remove_overlays(image)
     centre, radius, outside, sign = field_of_view(image, config.polarity)
-    A = attenuation(image, outside, sign)
     u, v = np.arange(w)[None, :], np.arange(h)[:, None]
     r = np.hypot(u - centre[0], v - centre[1])
     valid = r < (radius if radius is not None else np.inf) - 2.0
@@ -663,6 +692,14 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= ~cv2.dilate(overlay.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
     if valid.sum() < config.min_bone_area_px:
         raise ContourError("the field of view is too small to hold a tibia")
+    # A frame stored through a log or gamma response is not linear in the quanta: its
+    # attenuation is read from its own noise instead of -log of the grey level.
+    linearised = linearised_attenuation(image, valid, sign)
+    A = attenuation(image, outside, sign) if linearised is None else linearised
+    # The C-arm that processed the frame also sharpened it: the field's rim, a step up from
+    # no signal, leaves a halo inside the circle that is neither air nor tissue.
+    halo = _PROCESSED_RIM_HALO_PX if linearised is not None and radius is not None else 0.0
+    valid &= r < (radius if radius is not None else np.inf) - halo
     broad = _broad_opaque(A, valid, config)
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
@@ -679,7 +716,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     (pin1, pin2), pins, pin_info = _pins(A, valid, config, expected_pins)
     bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
     margin = config.fov_margin_px
-    rim_ok = r < (radius if radius is not None else np.inf) - margin
+    rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
     rim_ok &= _distance_to(broad) > margin
@@ -690,7 +727,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
                if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
-        "polarity": "dark" if sign > 0 else "bright", **pin_info, **bone_info,
+        "polarity": "dark" if sign > 0 else "bright",
+        "response": "linear" if linearised is None else "linearised from the noise", **pin_info, **bone_info,
         "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import generate_uid
 
-from slamtka.solver.imaging.calibration import write_calibration
+from slamtka.solver.imaging.calibration_file import write_calibration
 from slamtka.sim.operating_room import OperatingRoom, render_room, room_bodies, room_scene
 from slamtka.sim.xray import XRayParams, XRayScene, default_distortion
 from slamtka.solver.plan import Plan

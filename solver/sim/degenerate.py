@@ -1,6 +1,6 @@
 """Cases the solver must not measure, or must measure right: the honest-failure study.
 
-Each kind spoils a simulated case the way the operating room can (DESIGN.md section 4): the
+Each kind spoils a simulated case the way the operating room can (docs/solver.md): the
 two views taken almost from the same angle, a pin outside one view, contours too sparse to
 register, 30% of the contour points outliers, or the contours of the other leg solved
 against this leg's plan. The solver may answer "not_measured" with a reason, or an angle

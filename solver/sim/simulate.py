@@ -58,13 +58,13 @@ class SimulationConfig:
     encoder_trans_sd_mm: float = 2.0
     outline_spacing_px: float = 1.0
     # CT segmentation error: the bone the X-rays see differs from the plan's mesh by a smooth
-    # displacement along its normals with this SD (0: the protocol of DESIGN.md section 5).
+    # displacement along its normals with this SD (0: the protocol of docs/evaluation.md).
     segmentation_sd_mm: float = 0.0
     seed: int = 0
 
     @staticmethod
     def at_level(level: int, seed: int, noise_px: float = 2.0) -> SimulationConfig:
-        """Initial-state noise of level 1..5 of DESIGN.md section 5: rotations SD 0.1 rad x
+        """Initial-state noise of level 1..5 of docs/evaluation.md: rotations SD 0.1 rad x
         level, translations SD 20 mm x level, on the set-up and on each pin (the protocol's
         noise on 3D edge points has no counterpart: the solver seats them on their rays)."""
         return SimulationConfig(noise_px=noise_px, seed=seed,

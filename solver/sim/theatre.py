@@ -155,7 +155,7 @@ class Theatre:
     # -- set-up ---------------------------------------------------------------------------
     def prepare(self) -> Path:
         """Plans folder (the phantom, precomputed once), calibration and configuration."""
-        from slamtka.solver.imaging.calibration import write_calibration
+        from slamtka.solver.imaging.calibration_file import write_calibration
 
         self.root.mkdir(parents=True, exist_ok=True)
         store = PlanStore(self.root / "plans")
@@ -201,6 +201,9 @@ manual_contours_dir = "contours"
 
 [sender]
 retry_initial_s = 0.5
+
+[health]
+http_port = 0  # any free port: theatres run side by side
 
 [[destinations]]
 name = "or-display"

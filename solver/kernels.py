@@ -1,0 +1,255 @@
+"""Compiled (numba) kernels for per-point loops that numpy expresses only as many small
+batched products or passes over temporaries.
+
+The Schur complement of an iteration eliminates each edge point's 3x3 block and folds its
+one or two (6, 3) couplings into the pose blocks: with numpy that is a dozen passes over
+(X, k, 6, 6) temporaries and sparse sums per trial step (a third of the joint stages'
+time); one compiled pass over the points does the same arithmetic in registers. The
+distance field's trilinear lookup (tens of thousands of points per seating of the edge
+points) is the same story: one pass instead of some twenty array passes, and so is the
+rasterisation of a model's projected footprint (every few iterations of every silhouette
+term) and the search for each observed contour pixel's nearest outline point (every
+iteration of every silhouette term: building and querying a KD-tree for a thousand points
+cost more than the rest of the term).
+Compiled on first use and cached beside this file when it is writable (the service's
+warm-up pays the first compilation, about a second).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
+
+
+@numba.njit(cache=True, nogil=True)
+def _inverse_3x3(M: np.ndarray, out: np.ndarray) -> None:
+    """``out`` = inverse of the 3x3 ``M`` from its cofactors (as the numpy path does)."""
+    c00 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
+    c01 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
+    c02 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
+    det = M[0, 0] * c00 + M[0, 1] * c01 + M[0, 2] * c02
+    out[0, 0] = c00 / det
+    out[1, 0] = c01 / det
+    out[2, 0] = c02 / det
+    out[0, 1] = (M[2, 1] * M[0, 2] - M[2, 2] * M[0, 1]) / det
+    out[1, 1] = (M[2, 2] * M[0, 0] - M[2, 0] * M[0, 2]) / det
+    out[2, 1] = (M[2, 0] * M[0, 1] - M[2, 1] * M[0, 0]) / det
+    out[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) / det
+    out[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) / det
+    out[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) / det
+
+
+@numba.njit(cache=True, nogil=True)
+def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: np.ndarray,
+                     n_poses: int, lam: float, regularisation: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point ``x``: its block damped (``lam`` times its diagonal, plus
+    ``regularisation`` times its trace) and inverted, ``V_inv`` (X, 3, 3); the sums over
+    points of ``W_a V_inv W_b^T`` into the pose-pair blocks (P, P, 6, 6) and of
+    ``W_a V_inv g_x`` into each pose (P, 6). ``W`` (X, k, 6, 3) holds each point's
+    couplings, ``pose_of`` (X, k) their poses (``n_poses`` marks an empty slot)."""
+    X, k = pose_of.shape
+    blocks = np.zeros((n_poses, n_poses, 6, 6))
+    shift = np.zeros((n_poses, 6))
+    V_inv = np.empty((X, 3, 3))
+    V = np.empty((3, 3))
+    Y = np.empty((k, 6, 3))
+    for x in range(X):
+        trace = H_xx[x, 0, 0] + H_xx[x, 1, 1] + H_xx[x, 2, 2]
+        reg = regularisation * max(trace, 1e-9)
+        for i in range(3):
+            for j in range(3):
+                V[i, j] = H_xx[x, i, j]
+            V[i, i] += lam * H_xx[x, i, i] + reg
+        _inverse_3x3(V, V_inv[x])
+        for a in range(k):
+            pa = pose_of[x, a]
+            if pa >= n_poses:
+                continue
+            for r in range(6):
+                for j in range(3):
+                    Y[a, r, j] = (W[x, a, r, 0] * V_inv[x, 0, j] + W[x, a, r, 1] * V_inv[x, 1, j]
+                                  + W[x, a, r, 2] * V_inv[x, 2, j])
+                shift[pa, r] += Y[a, r, 0] * g_x[x, 0] + Y[a, r, 1] * g_x[x, 1] + Y[a, r, 2] * g_x[x, 2]
+            for b in range(k):
+                pb = pose_of[x, b]
+                if pb >= n_poses:
+                    continue
+                for r in range(6):
+                    for c in range(6):
+                        blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
+                                                 + Y[a, r, 2] * W[x, b, c, 2])
+    return blocks, shift, V_inv
+
+
+@numba.njit(cache=True, nogil=True)
+def trilinear(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray,
+              gradient: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Trilinear interpolation of the grid ``values`` (nx, ny, nz) at ``origin + spacing *
+    (i, j, k)`` at ``points`` (N, 3), and the interpolant's exact gradient (N, 3) when
+    ``gradient`` (else an empty (0, 3)). Beyond the grid the distance to it is added and
+    its direction becomes the gradient along the clamped axes (see
+    ``SignedDistanceField.query``)."""
+    n = points.shape[0]
+    value = np.empty(n)
+    grad = np.empty((n if gradient else 0, 3))
+    upper = np.empty(3)
+    for k in range(3):
+        upper[k] = values.shape[k] - 1 - 1e-9
+    g = np.empty(3)
+    f = np.empty(3)
+    i = np.empty(3, np.int64)
+    out = np.empty(3)
+    for p in range(n):
+        dist_out = 0.0
+        for k in range(3):
+            g[k] = (points[p, k] - origin[k]) / spacing
+            clamped = min(max(g[k], 0.0), upper[k])
+            i[k] = int(np.floor(clamped))
+            f[k] = clamped - i[k]
+            out[k] = (g[k] - clamped) * spacing
+            dist_out += out[k] * out[k]
+        dist_out = np.sqrt(dist_out)
+        x, y, z = i[0], i[1], i[2]
+        fx, fy, fz = f[0], f[1], f[2]
+        c000, c001 = float(values[x, y, z]), float(values[x, y, z + 1])
+        c010, c011 = float(values[x, y + 1, z]), float(values[x, y + 1, z + 1])
+        c100, c101 = float(values[x + 1, y, z]), float(values[x + 1, y, z + 1])
+        c110, c111 = float(values[x + 1, y + 1, z]), float(values[x + 1, y + 1, z + 1])
+        dz00, dz01, dz10, dz11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
+        cz00, cz01 = c000 + dz00 * fz, c010 + dz01 * fz
+        cz10, cz11 = c100 + dz10 * fz, c110 + dz11 * fz
+        dy0, dy1 = cz01 - cz00, cz11 - cz10
+        cy0, cy1 = cz00 + dy0 * fy, cz10 + dy1 * fy
+        dx = cy1 - cy0
+        value[p] = cy0 + dx * fx + dist_out
+        if gradient:
+            slope_z0 = dz00 + (dz01 - dz00) * fy
+            slope_z1 = dz10 + (dz11 - dz10) * fy
+            grad[p, 0] = dx / spacing
+            grad[p, 1] = (dy0 * (1 - fx) + dy1 * fx) / spacing
+            grad[p, 2] = (slope_z0 * (1 - fx) + slope_z1 * fx) / spacing
+            for k in range(3):
+                if out[k] != 0.0:
+                    grad[p, k] = out[k] / dist_out
+    return value, grad
+
+
+@numba.njit(cache=True, nogil=True)
+def footprint_mask(a: np.ndarray, b: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Binary mask (height, width) of the region an outline encloses, and of the pixels it
+    passes through: ``a``, ``b`` (E, 2) are its directed edges' ends in mask pixels (see
+    ``ContourGenerator.footprint``). The winding number is accumulated along each row of
+    the outline's bounding box from the signed crossings of the edges with the rows'
+    centres; then every edge is walked in unit steps."""
+    mask = np.zeros((height, width), np.uint8)
+    n = a.shape[0]
+    if n == 0:
+        return mask
+    lo_u, lo_v, hi_u, hi_v = np.inf, np.inf, -np.inf, -np.inf
+    for e in range(n):
+        lo_u = min(lo_u, a[e, 0], b[e, 0])
+        hi_u = max(hi_u, a[e, 0], b[e, 0])
+        lo_v = min(lo_v, a[e, 1], b[e, 1])
+        hi_v = max(hi_v, a[e, 1], b[e, 1])
+    left = int(min(max(np.ceil(lo_u), 0), width))
+    right = int(min(max(np.ceil(hi_u), 0), width))
+    upper = int(min(max(np.ceil(lo_v), 0), height))
+    lower = int(min(max(np.ceil(hi_v), 0), height))
+    box_w = right - left
+    crossings = np.zeros((max(lower - upper, 0), box_w + 1), np.int64)
+    for e in range(n):
+        downwards = b[e, 1] > a[e, 1]
+        if downwards:
+            tu, tv, bu, bv, sign = a[e, 0], a[e, 1], b[e, 0], b[e, 1], 1
+        else:
+            tu, tv, bu, bv, sign = b[e, 0], b[e, 1], a[e, 0], a[e, 1], -1
+        first = int(min(max(np.ceil(tv), 0), height))
+        last = int(min(max(np.ceil(bv), 0), height))
+        for row in range(first, last):
+            x = tu + (row - tv) / (bv - tv) * (bu - tu)
+            column = int(min(max(np.ceil(x), left), right)) - left
+            crossings[row - upper, column] += sign
+    for r in range(lower - upper):
+        winding = 0
+        for c in range(box_w):
+            winding += crossings[r, c]
+            if winding != 0:
+                mask[upper + r, left + c] = 1
+    for e in range(n):
+        du, dv = b[e, 0] - a[e, 0], b[e, 1] - a[e, 1]
+        steps = int(np.ceil(max(abs(du), abs(dv)))) + 1
+        for place in range(steps):
+            s = place / max(steps - 1, 1)
+            u = int(np.rint(a[e, 0] + s * du))
+            v = int(np.rint(a[e, 1] + s * dv))
+            if 0 <= u < width and 0 <= v < height:
+                mask[v, u] = 1
+    return mask
+
+
+@numba.njit(cache=True, nogil=True)
+def nearest_points(points: np.ndarray, queries: np.ndarray, cell: float) -> np.ndarray:
+    """Index (M,) of the nearest of ``points`` (N >= 1, 2) to each of ``queries`` (M, 2),
+    exactly: the points are binned on a grid of ``cell``-sized squares, and each query
+    visits the rings of cells around its own until no closer point can lie further out
+    (a point in ring r + 1 is at least r cells away)."""
+    n = points.shape[0]
+    lo_u, lo_v = points[0, 0], points[0, 1]
+    hi_u, hi_v = lo_u, lo_v
+    for k in range(n):
+        lo_u, hi_u = min(lo_u, points[k, 0]), max(hi_u, points[k, 0])
+        lo_v, hi_v = min(lo_v, points[k, 1]), max(hi_v, points[k, 1])
+    cols = int((hi_u - lo_u) / cell) + 1
+    rows = int((hi_v - lo_v) / cell) + 1
+    bin_of = np.empty(n, np.int64)
+    start = np.zeros(cols * rows + 1, np.int64)
+    for k in range(n):
+        bin_of[k] = int((points[k, 1] - lo_v) / cell) * cols + int((points[k, 0] - lo_u) / cell)
+        start[bin_of[k] + 1] += 1
+    for b in range(cols * rows):
+        start[b + 1] += start[b]
+    order = np.empty(n, np.int64)
+    filled = start[:-1].copy()
+    for k in range(n):
+        order[filled[bin_of[k]]] = k
+        filled[bin_of[k]] += 1
+    found = np.empty(queries.shape[0], np.int64)
+    for q in range(queries.shape[0]):
+        u, v = queries[q, 0], queries[q, 1]
+        cu = int(np.floor((u - lo_u) / cell))
+        cv = int(np.floor((v - lo_v) / cell))
+        # Rings beyond this reach lie wholly outside the grid.
+        reach = max(cu, cols - 1 - cu, cv, rows - 1 - cv, 0)
+        best, best_d2 = -1, np.inf
+        for r in range(reach + 1):
+            for gv in range(max(cv - r, 0), min(cv + r, rows - 1) + 1):
+                on_edge = gv == cv - r or gv == cv + r
+                step = 1 if on_edge else 2 * r
+                gu = cu - r
+                while gu <= cu + r:
+                    if 0 <= gu < cols:
+                        b = gv * cols + gu
+                        for j in range(start[b], start[b + 1]):
+                            k = order[j]
+                            d2 = (points[k, 0] - u) ** 2 + (points[k, 1] - v) ** 2
+                            if d2 < best_d2 or (d2 == best_d2 and k < best):
+                                best, best_d2 = k, d2
+                    gu += step
+            if best >= 0 and best_d2 <= (r * cell) ** 2:
+                break
+        found[q] = best
+    return found
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel now, on a tiny problem: the first
+    compilation takes about two seconds, which no case in the operating room should wait."""
+    schur_complement(np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 1, 6, 3)),
+                     np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
+    footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
+    nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
+    for gradient in (False, True):
+        trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)
