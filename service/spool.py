@@ -105,20 +105,22 @@ class Spool:
 
     def entries(self) -> list[SpoolEntry]:
         """Every spooled instance in the order it was received (file modification time)."""
-        files = sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
         out = []
-        for path in files:
+        for path in self._files():
             uid = str(pydicom.dcmread(path, stop_before_pixels=True,
                                       specific_tags=["SOPInstanceUID"]).SOPInstanceUID)
             out.append(SpoolEntry(path.stem, path, uid))
         return out
 
+    def _files(self) -> list[Path]:
+        """The instance files, oldest first (file modification time)."""
+        return sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
+
     def recover(self) -> tuple[list[SpoolEntry], list[dict]]:
         """:meth:`entries` at start-up: a file whose header cannot be read is quarantined;
         (the readable entries, one ``{"file", "reason", "moved_to"}`` per file moved aside)."""
         entries, moved = [], []
-        files = sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
-        for path in files:
+        for path in self._files():
             try:
                 if path.stat().st_size == 0:
                     raise ValueError("empty file")
