@@ -329,9 +329,12 @@ def burst_memory(root: Path, count: int, side: int = 2048) -> Tally:
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("fork")) as pool:
         uncapped, _ = pool.submit(_burst, root / "uncapped", 64, count, side,
                                   _BURST_PARALLEL).result()
-    # Each association may hold one message as it arrives (pynetdicom assembles it); only
-    # the capped ones are decoded and written, each with a few copies of its frame.
-    bound = _BURST_PARALLEL * 2 * frame_mb + _BURST_CAP * 6 * frame_mb + 64.0
+    # What the configuration promises: each association may hold one message of up to
+    # max_message_bytes as pynetdicom assembles it; only max_frames_in_memory of them are
+    # decoded and written at once, each with up to eight copies of its frame; 64 MB for
+    # threads and the allocator.
+    message_mb = (4 * side * side + (1 << 20)) / 1e6  # _burst's dicom.max_message_bytes
+    bound = _BURST_PARALLEL * message_mb + _BURST_CAP * 8 * frame_mb + 64.0
     tally.count(capped > bound, f"peak growth {capped:.0f} MB over the bound {bound:.0f} MB")
     tally.notes.update(frames=count, frame_mb=round(frame_mb, 1), associations=_BURST_PARALLEL,
                        max_frames_in_memory=_BURST_CAP, rss_growth_mb=round(capped, 1),
