@@ -52,7 +52,7 @@ from slamtka.service.story import LinkWatch, tell
 from slamtka.service.systemd import Watchdog, notify, watchdog_interval_s
 from slamtka.service.workflow import Workflow
 
-__all__ = ["Service", "DataFolderBusy", "lock_data_folder", "add_serve_parser"]
+__all__ = ["Service", "DataFolderBusy", "lock_data_folder", "supervise", "add_serve_parser"]
 
 log = logging.getLogger("slamtka.serve")
 _REQUEST_POLL_S = 0.5  # how soon an idle worker sees an operator's request
@@ -411,7 +411,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
           f"{service.receiver.port}; data in {config.data_dir}"
           + (f"; health on http://{config.health.http_bind_address}:{service.health_server.port}"
              if service.health_server is not None else ""), flush=True)
-    while not stop.wait(1.0):
+    return supervise(service, stop)
+
+
+def supervise(service: Service, stop: threading.Event, poll_s: float = 1.0) -> int:
+    """Run until ``stop`` is set or the worker thread ends (then the process must go, so
+    that systemd starts it afresh); stop the service; the exit status."""
+    while not stop.wait(poll_s):
         if not service.worker_alive():
             log.critical("the worker thread ended; exiting (status %d) to be restarted",
                          EXIT_WORKER_DIED)

@@ -12,7 +12,7 @@ import signal
 import socket
 import threading
 import time
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import pytest
 
@@ -209,14 +209,12 @@ def test_the_watchdog_is_pinged_only_while_the_worker_lives(tmp_path, monkeypatc
 
 # -- the worker ---------------------------------------------------------------------------
 
-def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
-    """A real ENOSPC (``/dev/full`` behind the audit log's descriptor) in the middle of a
-    case's run: the worker thread lives on and keeps beating; the audit log resumes."""
-    from pydicom.uid import generate_uid
-    from service_testing import free_port, small_frame
+@pytest.fixture
+def service(tmp_path):
+    """The whole service in this process (no encoders), its results going nowhere."""
+    from service_testing import free_port
 
     from slamtka.service.config import load_config
-    from slamtka.service.frames import encode_frame
     from slamtka.service.serve import Service
     from slamtka.sim.theatre import Theatre
 
@@ -224,6 +222,19 @@ def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
     theatre.prepare()
     service = Service(load_config(theatre.write_config(free_port(), "")))
     service.start()
+    yield service
+    if service._state != "stopped":
+        service.stop()
+
+
+def test_the_worker_survives_an_audit_log_it_cannot_write(service):
+    """A real ENOSPC (``/dev/full`` behind the audit log's descriptor) in the middle of a
+    case's run: the worker thread lives on and keeps beating; the audit log resumes."""
+    from pydicom.uid import generate_uid
+    from service_testing import small_frame
+
+    from slamtka.service.frames import encode_frame
+
     saved = os.dup(service.audit._fd)
     full = os.open("/dev/full", os.O_WRONLY)
     try:
@@ -234,10 +245,11 @@ def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
                                 sop_instance_uid=generate_uid())
             entry, _ = service.spool.store(encode_frame(frame))
             service._incoming.put(entry)
+
         def last_beat() -> datetime:
             return datetime.fromisoformat(service._worker_status()["last_beat"])
 
-        beat = datetime.now(timezone.utc) + timedelta(seconds=1)
+        beat = datetime.now(UTC) + timedelta(seconds=1)
         deadline = time.monotonic() + 30.0
         while last_beat() <= beat and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -249,6 +261,15 @@ def test_the_worker_survives_an_audit_log_it_cannot_write(tmp_path):
         os.close(full)
         service.stop()
     assert verify_chain(service.config.audit_log).broken is None
+    assert [e["event"] for e in read_audit(service.config.audit_log)][-1] == "service_stopped"
+
+
+def test_serve_exits_non_zero_when_the_worker_thread_has_ended(service):
+    from slamtka.service.serve import EXIT_WORKER_DIED, supervise
+
+    service._incoming.put(None)  # the worker ends while the service is not stopping
+    assert supervise(service, threading.Event(), poll_s=0.05) == EXIT_WORKER_DIED
+    assert not service.worker_alive() and service._state == "stopped"
     assert [e["event"] for e in read_audit(service.config.audit_log)][-1] == "service_stopped"
 
 
