@@ -159,7 +159,7 @@ def enospc(root: Path, count: int) -> Tally:
 
 def _log_count(root: Path, text: str) -> int:
     """Lines of the service's log containing ``text``."""
-    log = root / "slamtka.service.log"
+    log = root / "service.log"
     return sum(text in line for line in log.read_text(errors="replace").splitlines())
 
 
@@ -356,7 +356,7 @@ def run_storage_item(name: str, root: Path, count: int) -> Tally:
     items = {"enospc": enospc, "damaged_spool": damaged_spool,
              "second_instance": second_instance, "burst_memory": burst_memory}
     tally = items[name](root, count)
-    service_log = root / "slamtka.service.log"
+    service_log = root / "service.log"
     if tally.failures and service_log.is_file():
         tally.notes["service_log_tail"] = service_log.read_text(errors="replace").splitlines()[-40:]
     return tally
