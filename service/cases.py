@@ -22,7 +22,7 @@ from datetime import datetime
 
 import numpy as np
 
-from slamtka.service.frames import FrameError, decode_frame
+from slamtka.service.frames import decode_frame
 from slamtka.service.poses import ViewGeometry, ViewPairing, view_separation_deg
 from slamtka.service.spool import Spool, SpoolEntry
 
@@ -101,11 +101,9 @@ class CaseAssembler:
 
     def add(self, entry: SpoolEntry) -> tuple[Case | None, bool]:
         """Put an instance into its case: (the case, whether the pipeline is now due)."""
-        try:
-            frame = decode_frame(self.spool.read(entry))
-        except FrameError as exc:  # validated on receipt; only a changed decoder gets here
-            log.error("spooled instance %s is not a usable frame: %s", entry.id, exc)
-            return None, False
+        # Validated on receipt: a FrameError here means a damaged file or a changed decoder;
+        # the caller audits it (the worker) or quarantines the file (start-up recovery).
+        frame = decode_frame(self.spool.read(entry))
         case_id = case_id_of(frame.patient_id, frame.study_uid, frame.laterality)
         case = self.cases.setdefault(case_id, Case(case_id, frame.patient_id, frame.study_uid,
                                                    frame.laterality))

@@ -32,6 +32,8 @@ COMMANDS: dict[str, Command] = {
                      "run the service (DICOM SCP, pipeline, results)"),
     "status": Command("slamtka.service.status", "add_status_parser",
                       "service health: spool, cases, last result, link, metrics"),
+    "audit": Command("slamtka.service.audit", "add_audit_parser",
+                     "check the audit log"),
     "plan": Command("slamtka.service.plans", "add_plan_parser", "pre-operative plans: add, list, show"),
     "case": Command("slamtka.service.case_cli", "add_case_parser",
                     "list, show, re-run a case, or start a new pin set"),

@@ -121,6 +121,10 @@ class DicomConfig:
     health_ae_title: str = "SLAMTKA_HEALTH"  # may associate and C-ECHO, never store
     max_pdu_bytes: int = 262144
     max_message_bytes: int = 32 * 1024 * 1024  # one received dataset, assembled in memory
+    # Instances decoded and spooled at once (each holds a few copies of its frame); a store
+    # beyond waits up to memory_wait_s, then is refused with 0xA700 (the C-arm retries).
+    max_frames_in_memory: int = 2
+    memory_wait_s: float = 5.0
     max_associations: int = 4
     max_associations_per_address: int = 2  # storing associations one source address may hold
     callers: list[CallerBinding] = field(default_factory=list)
@@ -150,6 +154,8 @@ class DicomConfig:
         _check_range(f"{where}.port", self.port, 0, 65535)  # 0: any free port (tests)
         _check_range(f"{where}.max_pdu_bytes", self.max_pdu_bytes, 4096, 16 * 1024 * 1024)
         _check_range(f"{where}.max_message_bytes", self.max_message_bytes, 1024 * 1024, 1 << 30)
+        _check_range(f"{where}.max_frames_in_memory", self.max_frames_in_memory, 1, 64)
+        _check_range(f"{where}.memory_wait_s", self.memory_wait_s, 0.0, 60.0)
         _check_range(f"{where}.max_associations", self.max_associations, 1, 64)
         _check_range(f"{where}.max_associations_per_address", self.max_associations_per_address,
                      1, 64)

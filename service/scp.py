@@ -13,6 +13,13 @@ against the negotiated context, UIDs, transfer syntax, image attributes and pixe
 through :func:`service.frames.decode_frame`), writes it to the spool (fsynced) and appends
 an audit line before the success status goes back; a refused instance gets a failure status
 with the reason in the Error Comment and an audit line. The pipeline runs elsewhere.
+
+Storage robustness: at most ``dicom.max_frames_in_memory`` instances are decoded and spooled
+at once (others wait up to ``dicom.memory_wait_s``, then get 0xA700, audited), so a burst of
+large frames cannot grow the process without bound. An instance whose receipt cannot be
+audited (a full disk) is taken back out of the spool and refused with 0xA700, so the C-arm's
+retry is stored and measured rather than taken for a duplicate. Another image under a SOP
+Instance UID already received is refused with 0x0111 and audited ``uid_conflict``.
 """
 
 from __future__ import annotations
@@ -60,6 +67,7 @@ TRANSFER_SYNTAXES = UNCOMPRESSED + tuple(uid for uid in COMPRESSED
                                          if get_decoder(uid).is_available)
 
 STATUS_SUCCESS = 0x0000
+STATUS_DUPLICATE_SOP = 0x0111  # "Duplicate SOP instance" (PS3.7 C.4.2.1.4)
 STATUS_NOT_AUTHORIZED = 0x0124
 STATUS_OUT_OF_RESOURCES = 0xA700
 STATUS_NOT_SOP_CLASS = 0xA900
@@ -134,6 +142,7 @@ class DicomReceiver:
         for sop_class in STORAGE_SOP_CLASSES:
             ae.add_supported_context(sop_class, list(TRANSFER_SYNTAXES))
         self.ae = ae
+        self._in_memory = threading.BoundedSemaphore(config.max_frames_in_memory)
 
     def start(self) -> None:
         handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
@@ -196,11 +205,21 @@ class DicomReceiver:
 
     def _on_store(self, event) -> Dataset:
         peer = self._peer(event)
-        context = event.context
         request_uid = str(event.request.AffectedSOPInstanceUID or "")
         if peer["calling_ae"] == self.config.health_ae_title:
             return self._refuse(peer, request_uid, STATUS_NOT_AUTHORIZED,
                                 "the health-check AE title may not store")
+        if not self._in_memory.acquire(timeout=self.config.memory_wait_s):
+            return self._refuse(peer, request_uid, STATUS_OUT_OF_RESOURCES,
+                                "busy: too many frames in memory, retry later")
+        try:
+            return self._store(event, peer, request_uid)
+        finally:
+            self._in_memory.release()
+
+    def _store(self, event, peer: dict, request_uid: str) -> Dataset:
+        """Validate, spool and audit one instance (holding one of the in-memory slots)."""
+        context = event.context
         refusal = check_command(event.request, context.abstract_syntax)
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
@@ -221,22 +240,36 @@ class DicomReceiver:
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
         try:
-            entry, created = self.spool.store(ds)
+            entry, outcome = self.spool.store(ds)
         except OSError as exc:
             log.error("cannot spool %s: %s", request_uid, exc)
             return self._refuse(peer, request_uid, STATUS_OUT_OF_RESOURCES,
                                 f"cannot write the spool: {exc.strerror}")
         fields = {"sop_instance_uid": entry.sop_instance_uid, "sop_class_uid": str(ds.SOPClassUID),
                   "study_uid": str(ds.StudyInstanceUID), "spool_id": entry.id, **peer}
-        if not created:
-            self.audit.record("duplicate", **fields)
-            return _status(STATUS_SUCCESS)
-        self.audit.record("received", **fields)
-        self.on_stored(entry)
-        return _status(STATUS_SUCCESS)
+        event_name, code, comment = {
+            "new": ("received", STATUS_SUCCESS, ""),
+            "duplicate": ("duplicate", STATUS_SUCCESS, ""),
+            "conflict": ("uid_conflict", STATUS_DUPLICATE_SOP,
+                         "another image was received under this SOP Instance UID")}[outcome]
+        try:
+            self.audit.record(event_name, status=f"0x{code:04X}", **fields)
+        except OSError as exc:  # unaudited, it must not count as received: the retry lands
+            log.error("cannot audit %s of %s: %s", event_name, request_uid, exc)
+            if outcome == "new":
+                self.spool.discard(entry)
+            return _status(STATUS_OUT_OF_RESOURCES, f"cannot write the audit log: {exc.strerror}")
+        if outcome == "new":
+            self.on_stored(entry)
+        elif outcome == "conflict":
+            log.warning("refused instance %s from %s: %s", request_uid, peer["calling_ae"], comment)
+        return _status(code, comment)
 
     def _refuse(self, peer: dict, uid: str, code: int, reason: str) -> Dataset:
         log.warning("refused instance %s from %s: %s", uid, peer["calling_ae"], reason)
-        self.audit.record("rejected", sop_instance_uid=uid, status=f"0x{code:04X}", reason=reason,
-                          **peer)
+        try:
+            self.audit.record("rejected", sop_instance_uid=uid, status=f"0x{code:04X}",
+                              reason=reason, **peer)
+        except OSError as exc:  # the refusal still goes back; the log says why it is missing
+            log.error("cannot audit the refusal of %s: %s", uid, exc)
         return _status(code, reason)

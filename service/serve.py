@@ -5,23 +5,30 @@ Threads: pynetdicom's association threads receive, validate, spool and queue ins
 never waits for the solver); the sender delivers results (:mod:`service.sender`); the
 encoder link reads the C-arm (``drivers``); the status board keeps ``status.json`` fresh.
 
-Start-up checks everything before the DICOM port opens: the configuration, the calibration
-(checksum), the plans folder, the link configuration. Temporary files a killed predecessor
-left in the spool and the send queue are removed. Then the spool is replayed into cases,
-so a restart loses nothing acknowledged, and a case whose current views were not yet
-measured is measured now. Under systemd (``Type=notify``) readiness is signalled once the
-port is open. SIGTERM/SIGINT stop it cleanly: the port closes first, the running case
-finishes, the queues stay on disk.
+Start-up first takes the data folder's lock (``serve.lock``): a second instance on the same
+folder exits at once, touching nothing. It checks everything before the DICOM port opens:
+the configuration, the calibration (checksum), the plans folder, the link configuration.
+Temporary files a killed predecessor left in the spool and the send queue are removed. Then
+the spool is replayed into cases, so a restart loses nothing acknowledged (a damaged spool
+file is quarantined and audited, never a reason not to start), and a case whose current
+views were not yet measured is measured now.
+
+The worker survives any exception of one item (an audit line that cannot be written
+included); should the thread end anyway, ``serve`` exits non-zero so that systemd restarts
+it, and the watchdog (``WatchdogSec=``) is pinged only while the worker lives. Under systemd
+(``Type=notify``) readiness is signalled once the port is open. SIGTERM/SIGINT stop it
+cleanly: the port closes first, the running case finishes, the queues stay on disk.
 """
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import logging
 import os
 import queue
 import signal
-import socket
+import sys
 import threading
 import warnings
 from datetime import datetime, timezone
@@ -30,7 +37,7 @@ from pathlib import Path
 from slamtka.drivers.encoder_link import EncoderLink, LinkConfig
 from slamtka.drivers.kinematics import CArmKinematics
 
-from slamtka.service.audit import AuditLog, last_event
+from slamtka.service.audit import AuditLog, file_digests, last_event
 from slamtka.service.cases import Case, CaseAssembler
 from slamtka.service.config import ServiceConfig, load_config
 from slamtka.service.plans import PlanStore
@@ -42,23 +49,37 @@ from slamtka.service.spool import Spool, SpoolEntry
 from slamtka.service.health import HealthServer, WorkerHeartbeat
 from slamtka.service.status import Metrics, StatusBoard, read_status
 from slamtka.service.story import LinkWatch, tell
+from slamtka.service.systemd import Watchdog, notify, watchdog_interval_s
 from slamtka.service.workflow import Workflow
 
-__all__ = ["Service", "add_serve_parser"]
+__all__ = ["Service", "DataFolderBusy", "lock_data_folder", "supervise", "add_serve_parser"]
 
 log = logging.getLogger("slamtka.serve")
 _REQUEST_POLL_S = 0.5  # how soon an idle worker sees an operator's request
+EXIT_WORKER_DIED = 70  # EX_SOFTWARE: systemd's Restart=on-failure starts us again
+EXIT_DATA_FOLDER_BUSY = 75  # EX_TEMPFAIL: another instance serves this data folder
+LOCK_FILE = "serve.lock"
 
 
-def _sd_notify(message: str) -> None:
-    """Tell systemd (Type=notify) about our state; a no-op outside systemd."""
-    address = os.environ.get("NOTIFY_SOCKET")
-    if not address:
-        return
-    if address.startswith("@"):
-        address = "\0" + address[1:]
-    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
-        sock.sendto(message.encode(), address)
+class DataFolderBusy(RuntimeError):
+    """Another ``slamtka serve`` holds the data folder."""
+
+
+def lock_data_folder(data_dir: Path) -> int:
+    """Hold ``serve.lock`` in ``data_dir`` (released by the kernel when the process ends);
+    the descriptor, or :class:`DataFolderBusy` naming the holder's process id."""
+    path = Path(data_dir) / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+        os.close(fd)
+        raise DataFolderBusy(f"{data_dir} is in use by another slamtka serve (pid {holder}); "
+                             "not starting a second instance on the same data folder") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
 
 
 class Service:
@@ -70,6 +91,8 @@ class Service:
             except OSError as exc:  # e.g. the path is a file: say which, not a traceback
                 raise RuntimeError(f"{folder}: cannot create the service folder "
                                    f"({exc.strerror or exc})") from None
+        # Before anything in the folder is opened, repaired or removed.
+        self._lock_fd: int | None = lock_data_folder(config.data_dir)
         self.metrics = Metrics(_carried_counters(config.status_file))
         self.audit = AuditLog(config.audit_log, listeners=[self.metrics.observe, tell])
         self.spool = Spool(config.spool_dir)
@@ -107,6 +130,7 @@ class Service:
         self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put)
         self._worker: threading.Thread | None = None
         self.heartbeat = WorkerHeartbeat()
+        self._watchdog: Watchdog | None = None
         self._state = "starting"
         self._started = datetime.now(timezone.utc).isoformat(timespec="seconds")
         self._last_result = last_event(config.audit_log, "processed")
@@ -141,8 +165,7 @@ class Service:
             return None
 
     def _worker_status(self) -> dict:
-        alive = self._worker is not None and self._worker.is_alive()
-        return self.heartbeat.describe(alive, self.config.health.max_run_s)
+        return self.heartbeat.describe(self.worker_alive(), self.config.health.max_run_s)
 
     def _link_status(self) -> dict | None:
         if self.link is None:
@@ -152,13 +175,17 @@ class Service:
                 "since": state.since_utc.isoformat(timespec="seconds"),
                 "port": self.config.carm.encoder_port}
 
+    def worker_alive(self) -> bool:
+        """Whether the worker thread runs (for the watchdog and the health check)."""
+        return self._worker is not None and self._worker.is_alive()
+
     # -- life cycle -----------------------------------------------------------------------
     def start(self) -> None:
         if self.link is not None:
             self.link.start()
         self.pipeline.warm_up()
         partial = remove_partial(self.spool.instances) + self.sender.recover()
-        due = self._recover()
+        due, quarantined = self._recover()
         self.sender.start()
         try:
             self.receiver.start()
@@ -166,6 +193,7 @@ class Service:
             self.sender.stop()
             if self.link is not None:
                 self.link.stop()
+            self._release_lock()
             raise RuntimeError(f"cannot listen for DICOM on {self.config.dicom.bind_address}:"
                                f"{self.config.dicom.port} ({exc.strerror or exc})") from None
         self._worker = threading.Thread(target=self._work, args=(due,), name="slamtka-worker",
@@ -177,13 +205,19 @@ class Service:
             self.health_server.start()
         self.audit.record("service_started", ae_title=self.config.dicom.ae_title,
                           port=self.receiver.port, recovered_instances=self.spool.count(),
-                          partial_files_removed=partial,
+                          partial_files_removed=partial, quarantined=quarantined,
                           config=str(self.config.source))
-        _sd_notify("READY=1")
+        notify("READY=1")
+        interval = watchdog_interval_s()
+        if interval is not None:
+            self._watchdog = Watchdog(self.worker_alive, interval)
+            self._watchdog.start()
 
     def stop(self) -> None:
-        _sd_notify("STOPPING=1")
+        notify("STOPPING=1")
         self._state = "stopping"
+        if self._watchdog is not None:
+            self._watchdog.stop()
         self.receiver.stop()
         self._incoming.put(None)
         if self._worker is not None:
@@ -199,18 +233,49 @@ class Service:
         self.audit.record("service_stopped")
         self.status.stop(final=self.status.write())
         self.audit.close()
+        self._release_lock()
 
-    def _recover(self) -> list[Case]:
-        """Rebuild cases from the spool; the cases whose current views were not measured."""
-        for entry in self.spool.entries():
-            self.assembler.add(entry)
+    def _release_lock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def _recover(self) -> tuple[list[Case], int]:
+        """Rebuild cases from the spool: (the cases whose current views were not measured,
+        how many damaged files were quarantined, each audited with its name and reason)."""
+        entries, moved = self.spool.recover()
+        for entry in entries:
+            try:
+                self.spool.read_sidecar(entry)
+            except (ValueError, OSError) as exc:  # empty or corrupt: paired again from scratch
+                moved.append(self.spool.quarantine(entry.sidecar, f"sidecar unreadable: {exc}"))
+            try:
+                self.assembler.add(entry)
+            except Exception as exc:  # truncated pixels, an unusable frame: moved aside
+                moved.append(self.spool.quarantine(entry.path, f"{type(exc).__name__}: {exc}"))
+        for item in moved:
+            log.error("quarantined spool file %s: %s", item["file"], item["reason"])
+            self.audit.record("quarantined", **item)
         for case in self.assembler.cases.values():
             self.workflow.restore(case)
-        return [c for c in self.assembler.cases.values()
-                if self.workflow.is_due(c)
-                and not self.pipeline.already_done(c, self.workflow.selection(c))]
+        due = [c for c in self.assembler.cases.values()
+               if self.workflow.is_due(c)
+               and not self.pipeline.already_done(c, self.workflow.selection(c))]
+        return due, len(moved)
 
     # -- the worker -----------------------------------------------------------------------
+    def _survive(self, what: str, step, *args) -> None:
+        """Run one step of the worker; an exception is logged and audited if the log can
+        take it (an ENOSPC on the audit log itself must not end the worker)."""
+        try:
+            step(*args)
+        except Exception as exc:
+            log.exception("worker: %s failed", what)
+            try:
+                self.audit.record("failed", step=what, error=f"{type(exc).__name__}: {exc}")
+            except Exception:
+                log.exception("worker: cannot audit the failure of %s", what)
+
     def _work(self, due: list[Case]) -> None:
         pending = {c.case_id: c for c in due}  # cases to run, oldest first
         reruns: set[str] = set()  # of those, the ones an operator asked to run again
@@ -230,17 +295,21 @@ class Service:
                     break
             if None in batch:  # stopping; what was spooled is recovered at the next start
                 return
-            for entry in batch:
-                self._assemble(entry, pending)
-            for case, _ in self.workflow.take_requests(self.assembler.cases):
-                pending[case.case_id] = case
-                reruns.add(case.case_id)
+            for entry in filter(None, batch):  # (no None left: checked above)
+                self._survive(f"assembling {entry.id}", self._assemble, entry, pending)
+            self._survive("taking operator requests", self._take_requests, pending, reruns)
             if pending:
                 case = pending.pop(next(iter(pending)))
                 with self.heartbeat.busy(f"case {case.case_id}"):
-                    self._process(case, rerun=case.case_id in reruns)
+                    self._survive(f"case {case.case_id}", self._process, case,
+                                  case.case_id in reruns)
                 reruns.discard(case.case_id)
-            self.status.refresh()
+            self._survive("refreshing the status", self.status.refresh)
+
+    def _take_requests(self, pending: dict[str, Case], reruns: set[str]) -> None:
+        for case, _ in self.workflow.take_requests(self.assembler.cases):
+            pending[case.case_id] = case
+            reruns.add(case.case_id)
 
     def _assemble(self, entry: SpoolEntry, pending: dict[str, Case]) -> None:
         """Put a received instance into its case and extract its contours ahead of the run."""
@@ -301,7 +370,7 @@ class Service:
             number=measurement["number"], status=doc["status"],
             verdict=doc["verdict"], reason=doc["reason"], ctr_deg=angles.get("ctr_deg"),
             str_deg=angles.get("str_deg"), seconds=doc["timings"]["total_s"],
-            folder=str(outcome.folder))
+            folder=str(outcome.folder), outputs_sha256=file_digests(outcome.folder))
 
 
 def _carried_counters(status_file: Path) -> dict:
@@ -329,7 +398,11 @@ def _service_logging(verbose: bool) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     _service_logging(args.verbose)
-    service = Service(config)
+    try:
+        service = Service(config)
+    except DataFolderBusy as exc:
+        print(f"slamtka serve: {exc}", file=sys.stderr, flush=True)
+        return EXIT_DATA_FOLDER_BUSY
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -338,8 +411,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
           f"{service.receiver.port}; data in {config.data_dir}"
           + (f"; health on http://{config.health.http_bind_address}:{service.health_server.port}"
              if service.health_server is not None else ""), flush=True)
-    while not stop.wait(1.0):
-        pass
+    return supervise(service, stop)
+
+
+def supervise(service: Service, stop: threading.Event, poll_s: float = 1.0) -> int:
+    """Run until ``stop`` is set or the worker thread ends (then the process must go, so
+    that systemd starts it afresh); stop the service; the exit status."""
+    while not stop.wait(poll_s):
+        if not service.worker_alive():
+            log.critical("the worker thread ended; exiting (status %d) to be restarted",
+                         EXIT_WORKER_DIED)
+            service.stop()
+            return EXIT_WORKER_DIED
     service.stop()
     return 0
 

@@ -10,6 +10,11 @@ Beside each instance the case assembler keeps a small JSON sidecar (how the fram
 paired with the C-arm's encoders), written the same crash-safe way, so a restart re-builds
 every case exactly as it was. A crash can leave only temporary files (``.tmp-*``) behind,
 never a partial instance (:mod:`slamtka.service.atomic_files`).
+
+A re-sent SOP Instance UID is compared with the spooled copy: the same image is a duplicate,
+another image under the same UID (other patient, other pixels) a conflict the caller refuses.
+Files that cannot be read at start-up (a disk error, an edit) are moved to ``quarantine/``
+with their sidecar, so one damaged file never keeps the service from starting.
 """
 
 from __future__ import annotations
@@ -17,15 +22,21 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import pydicom
 from pydicom.dataset import Dataset
 
-from slamtka.service.atomic_files import write_atomic, write_json_atomic
+from slamtka.service.atomic_files import _fsync_dir, write_atomic, write_json_atomic
 
-__all__ = ["Spool", "SpoolEntry", "entry_id"]
+__all__ = ["Spool", "SpoolEntry", "entry_id", "content_digest"]
+
+StoreOutcome = Literal["new", "duplicate", "conflict"]
+# What makes two instances "the same image": who, which study and series, and the pixels.
+_IDENTITY = ("PatientID", "StudyInstanceUID", "SeriesInstanceUID", "SOPClassUID")
 
 def entry_id(sop_instance_uid: str) -> str:
     """File stem for an instance: a digest, so no received value ever becomes a path."""
@@ -45,20 +56,45 @@ class SpoolEntry:
         return self.path.with_suffix(".json")
 
 
+def content_digest(ds: Dataset) -> str:
+    """SHA-256 over the identifying attributes and the decoded pixels (so the same image
+    sent again in another transfer syntax is still the same)."""
+    digest = hashlib.sha256()
+    for keyword in _IDENTITY:
+        digest.update(f"{keyword}={ds.get(keyword, '')}\0".encode("utf-8", "replace"))
+    pixels = ds.pixel_array
+    digest.update(f"{pixels.dtype.str}{pixels.shape}".encode())
+    digest.update(pixels.tobytes())
+    return digest.hexdigest()
+
+
 class Spool:
     def __init__(self, root: Path):
         self.root = Path(root)
         self.instances = self.root / "instances"
         self.instances.mkdir(parents=True, exist_ok=True)
 
-    def store(self, ds: Dataset) -> tuple[SpoolEntry, bool]:
-        """Persist ``ds`` (with its file meta); False in the tuple if it was already spooled."""
+    def store(self, ds: Dataset) -> tuple[SpoolEntry, StoreOutcome]:
+        """Persist ``ds`` (with its file meta) unless its UID is spooled already; then say
+        whether the spooled copy is the same image (``duplicate``) or not (``conflict``)."""
         uid = str(ds.SOPInstanceUID)
         buffer = io.BytesIO()
         ds.save_as(buffer, enforce_file_format=True)
         entry = self.entry(uid)
-        created = write_atomic(entry.path, buffer.getvalue(), replace=False)
-        return entry, created
+        if write_atomic(entry.path, buffer.getvalue(), replace=False):
+            return entry, "new"
+        try:
+            same = content_digest(self.read(entry)) == content_digest(ds)
+        except Exception:  # an unreadable spooled copy cannot vouch for the new one
+            same = False
+        return entry, "duplicate" if same else "conflict"
+
+    def discard(self, entry: SpoolEntry) -> None:
+        """Take back a just-stored instance whose receipt could not be audited (so the
+        sender's retry is stored and queued again, not taken for a duplicate)."""
+        entry.path.unlink(missing_ok=True)
+        entry.sidecar.unlink(missing_ok=True)
+        _fsync_dir(self.instances)
 
     def entry(self, sop_instance_uid: str) -> SpoolEntry:
         stem = entry_id(sop_instance_uid)
@@ -69,13 +105,50 @@ class Spool:
 
     def entries(self) -> list[SpoolEntry]:
         """Every spooled instance in the order it was received (file modification time)."""
-        files = sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
         out = []
-        for path in files:
+        for path in self._files():
             uid = str(pydicom.dcmread(path, stop_before_pixels=True,
                                       specific_tags=["SOPInstanceUID"]).SOPInstanceUID)
             out.append(SpoolEntry(path.stem, path, uid))
         return out
+
+    def _files(self) -> list[Path]:
+        """The instance files, oldest first (file modification time)."""
+        return sorted(self.instances.glob("*.dcm"), key=lambda p: (p.stat().st_mtime_ns, p.name))
+
+    def recover(self) -> tuple[list[SpoolEntry], list[dict]]:
+        """:meth:`entries` at start-up: a file whose header cannot be read is quarantined;
+        (the readable entries, one ``{"file", "reason", "moved_to"}`` per file moved aside)."""
+        entries, moved = [], []
+        for path in self._files():
+            try:
+                if path.stat().st_size == 0:
+                    raise ValueError("empty file")
+                uid = str(pydicom.dcmread(path, stop_before_pixels=True,
+                                          specific_tags=["SOPInstanceUID"]).SOPInstanceUID)
+            except Exception as exc:  # pydicom raises many types on a damaged file
+                moved.append(self.quarantine(path, f"unreadable: {type(exc).__name__}: {exc}"))
+                continue
+            entries.append(SpoolEntry(path.stem, path, uid))
+        return entries, moved
+
+    def quarantine(self, path: Path, reason: str) -> dict:
+        """Move a damaged spool file (an instance takes its sidecar along) out of the way."""
+        folder = self.root / "quarantine"
+        folder.mkdir(exist_ok=True)
+        moved = []
+        for item in (path, path.with_suffix(".json")) if path.suffix == ".dcm" else (path,):
+            if item.exists():
+                target = folder / item.name
+                n = 1
+                while target.exists():  # a file damaged twice keeps both copies
+                    target = folder / f"{item.name}.{n}"
+                    n += 1
+                os.replace(item, target)
+                moved.append(target.name)
+        _fsync_dir(self.instances)
+        _fsync_dir(folder)
+        return {"file": path.name, "reason": reason[:300], "moved_to": moved}
 
     def write_sidecar(self, entry: SpoolEntry, doc: dict) -> None:
         write_json_atomic(entry.sidecar, doc)
@@ -97,3 +170,4 @@ class Spool:
             except FileNotFoundError:
                 continue
         return total
+

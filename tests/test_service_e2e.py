@@ -238,7 +238,7 @@ def test_replay_re_solves_the_recorded_inputs(theatre, capsys):
 def test_the_service_benchmark_writes_its_figures(tmp_path, capsys):
     code, out = _slamtka(capsys, "bench", "service", "--out", str(tmp_path), "--cases", "2")
     assert code == 0, out
-    figures = json.loads((tmp_path / "slamtka.service.json").read_text())
+    figures = json.loads((tmp_path / "service.json").read_text())
     assert figures["cases"] == 2 and len(figures["sequential"]) == 2 and len(figures["burst"]) == 2
     assert figures["latency_s"]["median"] > 0 and figures["throughput_cases_per_min"] > 0
     assert "median" in out and "cases/min" in out

@@ -137,7 +137,7 @@ def test_a_killed_service_is_seen_down_within_seconds_and_counters_carry_over(tm
     data.mkdir()
     (data / "status.json").write_text(json.dumps({  # what the previous run left
         "state": "stopped", "updated": "2026-12-04T10:00:00+00:00", "metrics": {"instances_received": 7}}))
-    log = (tmp_path / "slamtka.service.log").open("w")  # not a pipe: nobody would drain it
+    log = (tmp_path / "service.log").open("w")  # not a pipe: nobody would drain it
     service = subprocess.Popen([*SLAMTKA, "serve", "--config", str(config)], stdout=log, stderr=log)
     try:
         _wait_for(lambda: _status(config).returncode == 0)

@@ -222,7 +222,7 @@ def crash(root: Path, stores: int, kills: int, seed: int = 0) -> Tally:
             status = client.store(data, uid)
             if status is None:  # the service went away mid-store: send it again
                 if not thread.is_alive() and theatre.service.poll() is not None:
-                    raise RuntimeError(f"the service is down for good; see {root / 'slamtka.service.log'}")
+                    raise RuntimeError(f"the service is down for good; see {root / 'service.log'}")
                 time.sleep(0.05)
                 continue
             queue.popleft()
@@ -524,7 +524,7 @@ def run_fault_item(name: str, root: Path, count: float) -> Tally:
     else:
         items = {"destination_down": destination_down, "serial_faults": serial_faults}
         tally = items[name](root, int(count))
-    service_log = root / "slamtka.service.log"
+    service_log = root / "service.log"
     if tally.failures and service_log.is_file():
         tally.notes["service_log_tail"] = service_log.read_text(errors="replace").splitlines()[-40:]
     return tally

@@ -534,6 +534,7 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
     whole service."""
     from slamtka.bench.faults import FAULT_ITEMS, run_fault_item  # they build on this module
     from slamtka.bench.network import NETWORK_ITEMS, run_network_item
+    from slamtka.bench.storage import STORAGE_ITEMS, run_storage_item
 
     results = {}
     for name, count in counts.items():
@@ -544,6 +545,8 @@ def run_items(root: Path, counts: dict[str, float], bound_s: float = 2.0,
             tally = run_fault_item(name, folder, count)
         elif name in NETWORK_ITEMS:
             tally = run_network_item(name, folder, int(count))
+        elif name in STORAGE_ITEMS:
+            tally = run_storage_item(name, folder, int(count))
         else:
             tally = _receiver_item(name, folder, int(count), bound_s)
         results[name] = {"tried": tally.tried, "failures": tally.failures, **tally.notes,
@@ -556,7 +559,9 @@ _LARGE = {"uids": 200, "truncation": 400, "pixel_length": 20, "element_length": 
           "nesting": 3, "deflate": 4, "oversize": 4, "fuzz_datasets": 100000,
           "fuzz_protocol": 10000, "admission": 5, "tls": 5, "idle_flood": 40, "disk_full": 5,
           "crash": 1000, "destination_down": 20, "serial_faults": 6,
-          "tls_names": 5, "ae_squatting": 20, "compressed": 20, "pixel_layouts": 20}
+          "tls_names": 5, "ae_squatting": 20, "compressed": 20, "pixel_layouts": 20,
+          "enospc": 3, "damaged_spool": 8, "uid_conflict": 50, "second_instance": 3,
+          "burst_memory": 24}
 
 
 def run_hardening_bench(args: argparse.Namespace) -> int:
@@ -583,13 +588,14 @@ def run_hardening_bench(args: argparse.Namespace) -> int:
 def add_hardening_bench_parser(kinds: argparse._SubParsersAction) -> None:
     from slamtka.bench.faults import FAULT_ITEMS
     from slamtka.bench.network import NETWORK_ITEMS
+    from slamtka.bench.storage import STORAGE_ITEMS
 
     p = kinds.add_parser("hardening", help="hostile DICOM, admission, TLS, floods, disk full, "
                                                 "crashes, faults, soak, TLS names, AE "
                                                 "squatting, compressed syntaxes, pixel layouts")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--only", type=lambda s: s.split(","),
-                   help=f"items (of {', '.join(ITEMS + FAULT_ITEMS + NETWORK_ITEMS)})")
+                   help=f"items (of {', '.join(ITEMS + FAULT_ITEMS + NETWORK_ITEMS + STORAGE_ITEMS)})")
     p.add_argument("--fuzz", type=int, help="mutation-fuzzed datasets (default 100000)")
     p.add_argument("--soak", type=float, metavar="MINUTES",
                    help="soak the service: a frame a second, a malformed input a minute (only "

@@ -111,7 +111,7 @@ def run_service_bench(args: argparse.Namespace) -> int:
                     "python": platform.python_version()},
         "render_seconds": render_s,
     }
-    (out / "slamtka.service.json").write_text(json.dumps(summary, indent=2))
+    (out / "service.json").write_text(json.dumps(summary, indent=2))
     print(f"latency (second view C-STORE -> SR at the display), {args.cases} cases: median "
           f"{latency['median']:.2f} s, p90 {latency['p90']:.2f} s, max {latency['max']:.2f} s")
     print(f"throughput: {len(burst)} cases in {burst_s:.1f} s = "
@@ -119,7 +119,7 @@ def run_service_bench(args: argparse.Namespace) -> int:
     if measured:
         print(f"|CTR error| median {summary['abs_ctr_error_deg']['median']:.2f} deg, "
               f"|STR error| median {summary['abs_str_error_deg']['median']:.2f} deg")
-    print(f"wrote {out / 'slamtka.service.json'}")
+    print(f"wrote {out / 'service.json'}")
     return 0
 
 

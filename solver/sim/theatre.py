@@ -291,7 +291,7 @@ port = {display_port}
 
     def start_service(self) -> None:
         """(Re)start ``slamtka serve`` with this theatre's configuration."""
-        with open(self.root / "slamtka.service.log", "ab") as log:
+        with open(self.root / "service.log", "ab") as log:
             self.service = subprocess.Popen(
                 [sys.executable, "-m", "slamtka.service.cli", "serve", "--config", str(self.config)],
                 stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1", **self.environ})
@@ -312,7 +312,7 @@ port = {display_port}
         while time.monotonic() < deadline:
             if self.service.poll() is not None:
                 raise RuntimeError(f"the service exited with {self.service.returncode}; see "
-                                   f"{self.root / 'slamtka.service.log'}")
+                                   f"{self.root / 'service.log'}")
             try:  # the port first, so that the C-ECHO below is not logged as a failure
                 socket.create_connection(("127.0.0.1", self.port), timeout=1.0).close()
             except OSError:
