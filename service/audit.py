@@ -34,7 +34,9 @@ EVENTS = ("service_started", "service_stopped", "connection_refused", "associati
           "pin_check", "pin_set_started", "status_sent", "output_failed", "operator_request",
           "clock_mismatch", "send_superseded",
           # storage robustness: the log's own repair, damaged spool files, UID conflicts
-          "audit_repaired", "quarantined", "uid_conflict")
+          "audit_repaired", "quarantined", "uid_conflict",
+          # retention (service.retention)
+          "case_archived", "case_pruned")
 
 CHAIN_FIELD = "prev"  # SHA-256 (hex) of the previous line's bytes, without its newline
 _GENESIS = "0" * 64  # ``prev`` of the first line of a new log

@@ -34,6 +34,8 @@ COMMANDS: dict[str, Command] = {
                       "service health: spool, cases, last result, link, metrics"),
     "audit": Command("slamtka.service.audit", "add_audit_parser",
                      "check the audit log"),
+    "prune": Command("slamtka.service.retention", "add_prune_parser",
+                     "archive idle cases and delete old ones (retention policy)"),
     "plan": Command("slamtka.service.plans", "add_plan_parser", "pre-operative plans: add, list, show"),
     "case": Command("slamtka.service.case_cli", "add_case_parser",
                     "list, show, re-run a case, or start a new pin set"),

@@ -319,6 +319,22 @@ class HealthConfig:
 
 
 @dataclass(frozen=True)
+class RetentionConfig:
+    """How long what the service keeps is kept (service.retention)."""
+
+    archive_after_hours: float = 12.0  # a case idle this long, all delivered, leaves the live spool
+    keep_days: float = 30.0  # then its frames and results are deleted (audit log kept)
+    min_free_mb: float = 2048.0  # below this much free disk no new frame is received
+    interval_s: float = 600.0  # how often the service archives and prunes
+
+    def check(self, where: str) -> None:
+        _check_range(f"{where}.archive_after_hours", self.archive_after_hours, 0.0, 24.0 * 365)
+        _check_range(f"{where}.keep_days", self.keep_days, 0.0, 3650.0)
+        _check_range(f"{where}.min_free_mb", self.min_free_mb, 0.0, 1e9)
+        _check_range(f"{where}.interval_s", self.interval_s, 1.0, 86400.0)
+
+
+@dataclass(frozen=True)
 class ServiceConfig:
     """The whole configuration; relative paths are relative to the TOML file."""
 
@@ -331,6 +347,7 @@ class ServiceConfig:
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     sender: SenderConfig = field(default_factory=SenderConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
+    retention: RetentionConfig = field(default_factory=RetentionConfig)
     destinations: list[Destination] = field(default_factory=list)
     source: Path | None = None  # the TOML file this came from (not a key)
 
@@ -340,6 +357,7 @@ class ServiceConfig:
         self.pipeline.check("pipeline")
         self.sender.check("sender")
         self.health.check("health")
+        self.retention.check("retention")
         names = [d.name for d in self.destinations]
         if len(set(names)) != len(names):
             raise ConfigError(f"destinations: names must be unique, got {names}")

@@ -37,7 +37,7 @@ from pydicom.uid import (
     generate_uid,
 )
 
-__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "SOP_CLASSES", "SIMULATED_SERIAL",
+__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "case_key", "SOP_CLASSES", "SIMULATED_SERIAL",
            "XA_IMAGE_STORAGE", "ENHANCED_XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
 
 XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1")
@@ -442,6 +442,22 @@ def _first_frame_attributes(ds: Dataset) -> Dataset:
     return flat
 
 
+def _laterality(attrs: Dataset) -> str | None:
+    laterality = str(attrs.get("ImageLaterality", "") or attrs.get("Laterality", "") or "") or None
+    if laterality in ("B", "U"):
+        laterality = None
+    if laterality not in (None, "L", "R"):
+        raise FrameError(f"Laterality {laterality!r} is not L or R")
+    return laterality
+
+
+def case_key(ds: Dataset) -> tuple[str, str, str | None]:
+    """Patient ID, Study Instance UID and laterality of an instance, read from its header
+    alone (pixels not needed): what groups it into a case."""
+    attrs = _first_frame_attributes(ds)
+    return str(attrs.get("PatientID", "")), str(attrs.get("StudyInstanceUID", "")), _laterality(attrs)
+
+
 def decode_frame(ds: Dataset) -> Frame:
     """The :class:`Frame` of a received instance, or :class:`FrameError` saying what is wrong."""
     attrs = _first_frame_attributes(ds)
@@ -453,11 +469,7 @@ def decode_frame(ds: Dataset) -> Frame:
     if modality not in SOP_CLASSES[sop_class]:
         raise FrameError(f"Modality {modality} is not an X-ray modality for SOP class {sop_class}")
     pixels, bits_stored = _pixels(ds)
-    laterality = str(attrs.get("ImageLaterality", "") or attrs.get("Laterality", "") or "") or None
-    if laterality in ("B", "U"):
-        laterality = None
-    if laterality not in (None, "L", "R"):
-        raise FrameError(f"Laterality {laterality!r} is not L or R")
+    laterality = _laterality(attrs)
     return Frame(
         pixels=pixels,
         imager_pixel_spacing_mm=_pixel_spacing(attrs),

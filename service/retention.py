@@ -13,7 +13,9 @@ associations, with the reason, before the disk fills. Every archive and prune is
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import shutil
 import time
 from collections.abc import Callable, Iterable
@@ -22,7 +24,7 @@ from pathlib import Path
 
 from slamtka.service.config import RetentionConfig
 
-__all__ = ["Retention", "Sweep", "pending_case_ids"]
+__all__ = ["Retention", "Sweep", "pending_case_ids", "add_prune_parser"]
 
 _DAY_S = 86400.0
 
@@ -111,7 +113,10 @@ class Retention:
                       for p in root.iterdir() if p.is_dir() and p.name.startswith("case-")}
         for case_id in sorted(candidates - set(active)):
             folders = [f for f in (self.archive_dir / case_id, self.output_dir / case_id) if f.is_dir()]
-            if _newest_mtime(p for f in folders for p in [f, *f.rglob("*")]) >= limit:
+            # A case's age: its frames' receipt and its results (a sidecar rewritten when the
+            # spool is replayed at a start is no new activity).
+            dated = [*(self.archive_dir / case_id).glob("*.dcm"), *(self.output_dir / case_id).rglob("*")]
+            if _newest_mtime(p for p in dated if p.is_file()) >= limit:
                 continue
             if case_id in pending:
                 sweep.kept_undelivered.append(case_id)
@@ -127,3 +132,61 @@ class Retention:
             sweep.pruned.append(case_id)
             sweep.freed_bytes += size
         return sweep
+
+
+# -- `slamtka prune`: the same, by hand, with the service stopped ------------------------------
+
+def _live_cases(instances: Path) -> dict[str, list[Path]]:
+    """Instance files of the live spool by case (read from their headers)."""
+    import pydicom
+
+    from slamtka.service.cases import case_id_of
+    from slamtka.service.frames import case_key
+
+    cases: dict[str, list[Path]] = {}
+    for path in sorted(instances.glob("*.dcm")):
+        try:
+            case_id = case_id_of(*case_key(pydicom.dcmread(path, stop_before_pixels=True)))
+        except Exception:  # a damaged file is the service's to quarantine at its next start
+            continue
+        cases.setdefault(case_id, []).append(path)
+    return cases
+
+
+def cmd_prune(args: argparse.Namespace) -> int:
+    from slamtka.service.audit import AuditLog
+    from slamtka.service.config import load_config
+    from slamtka.service.serve import DataFolderBusy, lock_data_folder
+
+    config = load_config(args.config)
+    try:
+        lock = lock_data_folder(config.data_dir)
+    except DataFolderBusy as exc:
+        raise RuntimeError(f"{exc}: the service archives and prunes by itself every "
+                           f"{config.retention.interval_s:.0f} s (retention.interval_s)") from None
+    audit = None if args.dry_run else AuditLog(config.audit_log)
+    try:
+        retention = Retention(config.retention, config.data_dir, config.output,
+                              None if audit is None else audit.record)
+        pending = pending_case_ids(config.queue_dir)
+        live = _live_cases(config.spool_dir / "instances")
+        idle = retention.idle_cases(live, pending)
+        for case_id in idle:
+            retention.archive(case_id, live[case_id], dry_run=args.dry_run)
+        sweep = retention.prune(pending, active=set(live) - set(idle), dry_run=args.dry_run)
+    finally:
+        if audit is not None:
+            audit.close()
+        os.close(lock)
+    verb = "would be" if args.dry_run else "were"
+    print(f"{len(idle)} idle case(s) {verb} archived; {len(sweep.pruned)} case(s) older than "
+          f"{config.retention.keep_days:g} days {verb} deleted ({sweep.freed_bytes / 1e6:.1f} MB); "
+          f"{len(sweep.kept_undelivered)} kept: a result still waits in the send queue")
+    return 0
+
+
+def add_prune_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("prune", help="archive idle cases and delete old ones (retention policy)")
+    p.add_argument("--config", type=Path, required=True)
+    p.add_argument("--dry-run", action="store_true", help="say what would go; change nothing")
+    p.set_defaults(func=cmd_prune)

@@ -125,8 +125,12 @@ class DicomReceiver:
     """The SCP of the service; ``on_stored`` is called with each newly spooled instance."""
 
     def __init__(self, config: DicomConfig, spool: Spool, audit: AuditLog,
-                 on_stored: Callable[[SpoolEntry], None]):
+                 on_stored: Callable[[SpoolEntry], None],
+                 space_problem: Callable[[], str | None] = lambda: None):
+        """``space_problem`` says why no frame may be stored now (the disk floor): storage
+        associations are then refused with that reason, echoes still answered."""
         self.config, self.spool, self.audit, self.on_stored = config, spool, audit, on_stored
+        self.space_problem = space_problem
         self._ssl = server_ssl_context(config.tls) if config.tls.enabled else None
         self._server = None
         ae = AE(ae_title=config.ae_title)
@@ -148,6 +152,7 @@ class DicomReceiver:
         handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
                     (evt.EVT_REJECTED, self._on_rejected), (evt.EVT_ACCEPTED, self._on_accepted)]
         limits = WireLimits(self.config, self.audit.record)
+        limits.space_problem = self.space_problem
         self._server = self.ae.make_server((self.config.bind_address, self.config.port),
                                            evt_handlers=handlers, ssl_context=self._ssl,
                                            server_class=GuardedServer, limits=limits)

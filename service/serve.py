@@ -30,6 +30,7 @@ import queue
 import signal
 import sys
 import threading
+import time
 import warnings
 from datetime import datetime, timezone
 from pathlib import Path
@@ -41,6 +42,7 @@ from slamtka.service.audit import AuditLog, file_digests, last_event
 from slamtka.service.cases import Case, CaseAssembler
 from slamtka.service.config import ServiceConfig, load_config
 from slamtka.service.plans import PlanStore
+from slamtka.service.retention import Retention, pending_case_ids
 from slamtka.service.poses import ViewGeometry
 from slamtka.service.scp import DicomReceiver
 from slamtka.service.sender import Sender
@@ -127,7 +129,10 @@ class Service:
                                  new_set_on_new_series=config.pipeline.new_set_on_new_series,
                                  institution=config.institution)
         self._incoming: queue.Queue[SpoolEntry | None] = queue.Queue()
-        self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put)
+        self.retention = Retention(config.retention, config.data_dir, config.output, self.audit.record)
+        self._next_retention = 0.0  # at the first turn of the worker, after recovery
+        self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put,
+                                      self.retention.space_problem)
         self._worker: threading.Thread | None = None
         self.heartbeat = WorkerHeartbeat()
         self._watchdog: Watchdog | None = None
@@ -263,6 +268,16 @@ class Service:
                and not self.pipeline.already_done(c, self.workflow.selection(c))]
         return due, len(moved)
 
+    def _retain(self) -> None:
+        """Archive the idle, delivered cases out of the live spool; prune the old ones."""
+        pending = pending_case_ids(self.config.queue_dir)
+        live = {case_id: [view.entry.path for view in case.views.values()]
+                for case_id, case in self.assembler.cases.items()}
+        for case_id in self.retention.idle_cases(live, pending):
+            self.retention.archive(case_id, live[case_id])
+            del self.assembler.cases[case_id]
+        self.retention.prune(pending, active=set(self.assembler.cases))
+
     # -- the worker -----------------------------------------------------------------------
     def _survive(self, what: str, step, *args) -> None:
         """Run one step of the worker; an exception is logged and audited if the log can
@@ -304,6 +319,9 @@ class Service:
                     self._survive(f"case {case.case_id}", self._process, case,
                                   case.case_id in reruns)
                 reruns.discard(case.case_id)
+            if not pending and time.monotonic() >= self._next_retention:
+                self._next_retention = time.monotonic() + self.config.retention.interval_s
+                self._survive("archiving and pruning", self._retain)
             self._survive("refreshing the status", self.status.refresh)
 
     def _take_requests(self, pending: dict[str, Case], reruns: set[str]) -> None:

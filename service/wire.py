@@ -99,6 +99,7 @@ class WireLimits:
         self.request_timeout_s = config.request_timeout_s
         self.idle_timeout_s = config.idle_timeout_s
         self.audit = audit
+        self.space_problem: Callable[[], str | None] = lambda: None  # the disk floor (retention)
 
     def address_allowed(self, host: str) -> bool:
         if not self.networks:
@@ -194,6 +195,9 @@ class GuardedSocket(AssociationSocket):
         problem = admission.binding_problem(address, calling, self.certificate)
         if problem:
             raise self._violation(problem, _A_ASSOCIATE_RJ_CALLER)
+        problem = self.guard.limits.space_problem() if kind == "storer" else None
+        if problem:  # transient: the C-arm may try again once space is freed
+            raise self._violation(problem, _A_ASSOCIATE_RJ_LIMIT)
         ticket = admission.take(kind, address, calling)
         if isinstance(ticket, str):
             raise self._violation(ticket, _A_ASSOCIATE_RJ_LIMIT)

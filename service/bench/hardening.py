@@ -561,7 +561,7 @@ _LARGE = {"uids": 200, "truncation": 400, "pixel_length": 20, "element_length": 
           "crash": 1000, "destination_down": 20, "serial_faults": 6,
           "tls_names": 5, "ae_squatting": 20, "compressed": 20, "pixel_layouts": 20,
           "enospc": 3, "damaged_spool": 8, "uid_conflict": 50, "second_instance": 3,
-          "burst_memory": 24}
+          "burst_memory": 24, "retention": 1000}
 
 
 def run_hardening_bench(args: argparse.Namespace) -> int:

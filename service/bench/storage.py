@@ -16,10 +16,16 @@
 - ``burst_memory``: eight associations at once store large valid frames; the receiver's peak
   resident memory growth with the ``dicom.max_frames_in_memory`` cap, against its bound and
   against the same burst uncapped.
+- ``retention``: a data folder with ``count`` cases (spooled frame, results), most of them
+  delivered and 40 days old, some old with a result still queued, some of today; the
+  service's start-up time, ``slamtka prune``, the start-up time again. Every old delivered
+  case must be gone, every queued or recent one kept, and start-up must no longer replay
+  the old cases.
 """
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import os
 import shutil
@@ -43,7 +49,8 @@ from slamtka.service.spool import entry_id
 
 __all__ = ["STORAGE_ITEMS", "run_storage_item", "small_tmpfs"]
 
-STORAGE_ITEMS = ("enospc", "damaged_spool", "uid_conflict", "second_instance", "burst_memory")
+STORAGE_ITEMS = ("enospc", "damaged_spool", "uid_conflict", "second_instance", "burst_memory",
+                 "retention")
 TMPFS_MB = 8
 _RESULT_WAIT_S = 60.0
 _DAMAGE = ("empty_instance", "truncated_instance", "empty_sidecar", "corrupt_sidecar")
@@ -343,6 +350,61 @@ def burst_memory(root: Path, count: int, side: int = 2048) -> Tally:
     return tally
 
 
+def _timed_start(theatre) -> float:
+    started = time.perf_counter()
+    theatre.start_service()
+    return time.perf_counter() - started
+
+
+def retention(root: Path, count: int) -> Tally:
+    from slamtka.service.cases import case_id_of
+    from slamtka.service.frames import encode_frame
+    from slamtka.service.spool import Spool
+
+    tally = Tally()
+    day = 86400.0
+    with running_theatre(root, encoders=False) as theatre:
+        theatre.stop_service()
+        data = root / "data"
+        spool, now = Spool(data / "spool"), time.time()
+        kinds: dict[str, str] = {}
+        for k in range(count):
+            kind = "recent" if k % 10 == 0 else "queued" if k % 50 == 1 else "old"
+            frame = replace(noise_frame(k, 16), patient_id=f"RETAIN-{k}", study_uid=f"1.2.826.0.1.{k}")
+            case_id = case_id_of(frame.patient_id, frame.study_uid, frame.laterality)
+            kinds[case_id] = kind
+            entry, _ = spool.store(encode_frame(frame))
+            result = data / "output" / case_id / "run-1" / "result.json"
+            result.parent.mkdir(parents=True, exist_ok=True)
+            result.write_text("{}")
+            if kind == "queued":
+                job = data / "queue" / "pending" / f"job-{k}.json"
+                job.parent.mkdir(parents=True, exist_ok=True)
+                job.write_text(json.dumps({  # held back: due in a year
+                    "id": f"job-{k}", "destination": "or-display", "path": str(result), "kind": "sr",
+                    "sop_class_uid": "1.2.840.10008.5.1.4.1.1.88.34", "sop_instance_uid": f"2.25.{k}",
+                    "case_id": case_id, "run_id": "run-1", "created": now, "next_attempt": now + 365 * day}))
+            age = 0.0 if kind == "recent" else 40 * day
+            for path in (entry.path, result):
+                os.utime(path, (now - age, now - age))
+        before_s = _timed_start(theatre)
+        theatre.stop_service()
+        done = subprocess.run([sys.executable, "-m", "slamtka.service.cli", "prune", "--config",
+                               str(theatre.config)], capture_output=True, text=True, timeout=600)
+        tally.count(done.returncode != 0, f"prune: {done.stderr[-300:]}")
+        after_s = _timed_start(theatre)
+        for case_id, kind in kinds.items():
+            kept = (data / "output" / case_id).is_dir()
+            tally.count(kept != (kind != "old"), f"{kind} case {case_id} {'kept' if kept else 'deleted'}")
+        live = len(list((data / "spool" / "instances").glob("*.dcm")))
+        tally.count(live != sum(kind != "old" for kind in kinds.values()), f"{live} frames left live")
+        tally.notes.update(cases=count, old_deleted=sum(not (data / "output" / c).is_dir() for c in kinds),
+                           queued_kept=sum(k == "queued" for k in kinds.values()),
+                           start_before_prune_s=round(before_s, 2), start_after_prune_s=round(after_s, 2),
+                           prune_says=done.stdout.strip())
+    return tally
+
+
 def run_storage_item(name: str, root: Path, count: int) -> Tally:
     """One item by name; ``count``: rounds (enospc), damaged files, conflicting UIDs,
     second starts or frames (burst_memory). A failed whole-service item keeps the end of
@@ -354,7 +416,8 @@ def run_storage_item(name: str, root: Path, count: int) -> Tally:
         finally:
             target.stop()
     items = {"enospc": enospc, "damaged_spool": damaged_spool,
-             "second_instance": second_instance, "burst_memory": burst_memory}
+             "second_instance": second_instance, "burst_memory": burst_memory,
+             "retention": retention}
     tally = items[name](root, count)
     service_log = root / "service.log"
     if tally.failures and service_log.is_file():
