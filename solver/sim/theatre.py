@@ -205,6 +205,9 @@ retry_initial_s = 0.5
 [health]
 http_port = 0  # any free port: theatres run side by side
 
+[retention]
+min_free_mb = 0  # benches run theatres on small file systems on purpose (a full disk)
+
 [[destinations]]
 name = "or-display"
 ae_title = "{DISPLAY_AE}"
