@@ -32,14 +32,26 @@ from pathlib import Path
 
 import numpy as np
 
-from slamtka.solver.jsonfile import read_json_object
-
 from slamtka.drivers.kinematics import JointReading
 from slamtka.drivers.protocol import (
-    PROTOCOL_VERSION, AxisInfo, DeviceIdentity, Frame, FrameParser, MessageType, ProtocolError,
-    ResultCode, Status, StatusFlags, decode_stream_start, encode_frame, encode_identity,
-    encode_readings, encode_result, encode_status,
+    PROTOCOL_VERSION,
+    AxisInfo,
+    DeviceIdentity,
+    Frame,
+    FrameParser,
+    MessageType,
+    ProtocolError,
+    ResultCode,
+    Status,
+    StatusFlags,
+    decode_stream_start,
+    encode_frame,
+    encode_identity,
+    encode_readings,
+    encode_result,
+    encode_status,
 )
+from slamtka.solver.jsonfile import read_json_object
 
 __all__ = ["FaultSpec", "FaultInjector", "MotionScript", "SimulatedCArm", "SimStats", "TruthLog",
            "DEFAULT_IDENTITY", "add_carm_sim_parser"]

@@ -24,19 +24,33 @@ import stat
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Callable, Mapping
 
 import numpy as np
 import serial
 
 from slamtka.drivers.kinematics import AXIS_UNITS, JOINT_FIELD, JointReading, config_number
 from slamtka.drivers.protocol import (
-    INVALID_FLAGS, PROTOCOL_VERSION, DeviceIdentity, Frame, FrameParser, MessageType, ParserStats,
-    ProtocolError, ResultCode, Status, StatusFlags, decode_identity, decode_reading, decode_result,
-    decode_status, encode_frame, encode_stream_start,
+    INVALID_FLAGS,
+    PROTOCOL_VERSION,
+    DeviceIdentity,
+    Frame,
+    FrameParser,
+    MessageType,
+    ParserStats,
+    ProtocolError,
+    ResultCode,
+    Status,
+    StatusFlags,
+    decode_identity,
+    decode_reading,
+    decode_result,
+    decode_status,
+    encode_frame,
+    encode_stream_start,
 )
 
 __all__ = [
@@ -460,7 +474,7 @@ class EncoderLink:
         return max_age_s
 
     def _make_state(self, status: str, reason: str, error: LinkError | None = None) -> LinkState:
-        return LinkState(status, reason, datetime.now(timezone.utc), time.monotonic(), error)
+        return LinkState(status, reason, datetime.now(UTC), time.monotonic(), error)
 
     def _set_state(self, status: str, reason: str, error: LinkError | None = None) -> None:
         if (status, reason) == (self._state.status, self._state.reason):
@@ -708,8 +722,8 @@ class EncoderLink:
         now = time.monotonic()
         t_utc = self._clock.update(frame.device_time_us, self._utc_base + now)
         reading = EncoderReading(frame.sequence, frame.device_time_us,
-                                 datetime.fromtimestamp(t_utc, timezone.utc),
-                                 datetime.fromtimestamp(self._utc_base + now, timezone.utc),
+                                 datetime.fromtimestamp(t_utc, UTC),
+                                 datetime.fromtimestamp(self._utc_base + now, UTC),
                                  now, axes.joints(counts), flags)
         self._last, self._last_counts = reading, counts
         self._history.append(reading, t_utc)

@@ -24,11 +24,10 @@ Units: joint values in degrees and millimetres (as the encoders report them), po
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
-from typing import Mapping, Sequence
-
 import math
 import numbers
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 

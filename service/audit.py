@@ -19,10 +19,11 @@ import hashlib
 import json
 import os
 import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 __all__ = ["AuditLog", "read_audit", "last_event", "verify_chain", "file_digests", "EVENTS"]
 
@@ -90,7 +91,7 @@ class AuditLog:
         """Append one event; raises OSError (nothing written) if the line cannot be stored."""
         if event not in EVENTS:
             raise ValueError(f"unknown audit event {event!r}")
-        entry = {"time": datetime.now(timezone.utc).isoformat(timespec="microseconds"),
+        entry = {"time": datetime.now(UTC).isoformat(timespec="microseconds"),
                  "event": event, **fields}
         with self._lock:
             entry[CHAIN_FIELD] = self._prev

@@ -12,7 +12,6 @@ the estimated plate error, the final RMS and the intrinsics with their standard 
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import cv2
@@ -20,13 +19,12 @@ import numpy as np
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from slamtka.solver.imaging.calibration_file import CalibrationError
-from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
-from slamtka.solver.imaging.plate import PhantomSpec
-
+from slamtka.service.atomic_files import write_json_atomic
 from slamtka.service.calibrations import detector_field_mm, device_identity
 from slamtka.service.frames import decode_frame
-from slamtka.service.atomic_files import write_json_atomic
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.calibration_file import CalibrationError
+from slamtka.solver.imaging.plate import PhantomSpec
 
 __all__ = ["add_calibrate_parser", "cmd_calibrate", "read_phantom_image", "format_report",
            "IMAGE_SUFFIXES"]

@@ -22,9 +22,13 @@ from pathlib import Path
 from pydicom.dataset import Dataset
 from pydicom.multival import MultiValue
 
-from slamtka.solver.imaging.calibration_file import Calibration, CalibrationError, assign_device, load_calibration
-
 from slamtka.service.atomic_files import write_json_atomic
+from slamtka.solver.imaging.calibration_file import (
+    Calibration,
+    CalibrationError,
+    assign_device,
+    load_calibration,
+)
 
 __all__ = ["DEVICE_KEYS", "CalibrationSet", "CalibrationStore", "device_identity",
            "detector_field_mm", "add_calibration_parser"]

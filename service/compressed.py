@@ -12,8 +12,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from pydicom.uid import (JPEGLosslessSV1, JPEGLSLossless, JPEGLSNearLossless, RLELossless, UID,
-                         JPEGLossless)
+from pydicom.uid import UID, JPEGLossless, JPEGLosslessSV1, JPEGLSLossless, JPEGLSNearLossless, RLELossless
 
 __all__ = ["ENCODERS", "NEAR_LOSSLESS_DEVIATION", "compress", "encoders_available", "storescu"]
 

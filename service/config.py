@@ -19,10 +19,10 @@ import re
 import tomllib
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
-
+from typing import Any
 
 __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
            "CallerBinding", "load_config", "config_from_dict", "validate_ae_title",

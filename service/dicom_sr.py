@@ -26,9 +26,9 @@ Identification Sequence. Sign convention: CTR positive = varus, STR positive = p
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Callable
 
 import highdicom as hd
 import numpy as np

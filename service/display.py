@@ -13,9 +13,9 @@ so the same situation told again after a restart is the same object.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Callable
 
 import numpy as np
 from pydicom.dataset import Dataset

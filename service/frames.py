@@ -24,15 +24,15 @@ from __future__ import annotations
 import contextlib
 import logging
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta, timezone
 
 import numpy as np
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.pixels import pixel_array
 from pydicom.uid import (
+    PYDICOM_IMPLEMENTATION_UID,
     UID,
     ExplicitVRLittleEndian,
-    PYDICOM_IMPLEMENTATION_UID,
     RLELossless,
     generate_uid,
 )
@@ -148,7 +148,7 @@ def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: s
     modality = _ENCODABLE[frame.sop_class_uid]
     if frame.modality != modality:
         raise ValueError(f"modality {frame.modality!r} does not match SOP class ({modality})")
-    when = (frame.acquisition_datetime or datetime.now(timezone.utc)).astimezone(timezone.utc)
+    when = (frame.acquisition_datetime or datetime.now(UTC)).astimezone(UTC)
     date, time = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
 
     meta = FileMetaDataset()
@@ -307,7 +307,7 @@ def _acquisition_datetime(ds: Dataset) -> datetime | None:
         when = datetime.strptime(padded, "%Y%m%d%H%M%S").replace(microsecond=fraction, tzinfo=offset)
     except ValueError:
         raise FrameError(f"acquisition date-time {text!r} is not a valid DICOM date-time") from None
-    return when.astimezone(timezone.utc)
+    return when.astimezone(UTC)
 
 
 def _pixel_spacing(ds: Dataset) -> tuple[float, float]:

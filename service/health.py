@@ -17,7 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 from slamtka.service.config import HealthConfig
 
@@ -29,7 +29,7 @@ STALE_INTERVALS = 3  # a snapshot missed this many times over is stale
 
 
 def _utc(seconds: float) -> str:
-    return datetime.fromtimestamp(seconds, timezone.utc).isoformat(timespec="milliseconds")
+    return datetime.fromtimestamp(seconds, UTC).isoformat(timespec="milliseconds")
 
 
 class WorkerHeartbeat:
@@ -77,7 +77,7 @@ def judge(status: dict | None, now: datetime | None = None) -> Health:
     """Whether the service that wrote ``status`` is up, and if not, why."""
     if status is None:
         return Health(False, "no status snapshot: the service has not run with this configuration")
-    now = now or datetime.now(timezone.utc)
+    now = now or datetime.now(UTC)
     state = status.get("state", "unknown")
     if state != "running":
         return Health(False, f"the service is {state}")

@@ -25,16 +25,15 @@ from pydicom.errors import InvalidDicomError
 
 from slamtka.drivers.encoder_link import EncoderReading
 from slamtka.drivers.kinematics import CArmKinematics, JointReading
-from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration
-from slamtka.solver.jsonfile import read_json_object
-from slamtka.solver.plan import Plan
-
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.config import CarmConfig, PipelineConfig
 from slamtka.service.frames import FrameError, decode_frame
 from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry
 from slamtka.service.spool import Spool
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration
+from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.plan import Plan
 
 __all__ = ["add_measure_parser", "run_measure", "MeasureError"]
 

@@ -31,10 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from slamtka.service.atomic_files import write_json_atomic
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
-
-from slamtka.service.atomic_files import write_json_atomic
 
 __all__ = ["pin_disagreement_px", "PinSet", "CasePinSets", "PinSetStore",
            "PIN_NOISE_FACTOR", "MIN_PIN_THRESHOLD_PX", "NO_CONTOURS"]

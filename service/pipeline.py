@@ -20,23 +20,16 @@ import logging
 import time
 import uuid
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from pydicom.dataset import Dataset
 from pydicom.uid import generate_uid
 
-from slamtka.solver import kernels
-from slamtka.solver.geometry import Pose
-from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
-from slamtka.solver.measurement import pin_axis_points
-from slamtka.solver.observations import LABELS, ViewObservation
-from slamtka.solver.plan import Plan
-from slamtka.solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
-
+from slamtka.service.atomic_files import remove_partial, write_atomic, write_json_atomic
 from slamtka.service.calibrations import CalibrationSet, choose_for_run
 from slamtka.service.cases import Case, View, run_id_of
 from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
@@ -50,8 +43,14 @@ from slamtka.service.poses import ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.results import build_result, validate_result
 from slamtka.service.sender import OutgoingObject
-from slamtka.service.atomic_files import remove_partial, write_atomic, write_json_atomic
 from slamtka.service.spool import Spool
+from slamtka.solver import kernels
+from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
+from slamtka.solver.measurement import pin_axis_points
+from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.plan import Plan
+from slamtka.solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_joint
 
 __all__ = ["Pipeline", "RunOutcome", "plane_polygon", "result_uid", "PLANE_PATCH_HALF_MM"]
 
@@ -128,10 +127,10 @@ class Pipeline:
         solver's kernels (about two seconds the first time)."""
         kernels.warm_up()
         source = encode_frame(Frame(np.zeros((8, 8), np.uint16), (0.2, 0.2), patient_id="WARMUP",
-                                    acquisition_datetime=datetime.now(timezone.utc)))
+                                    acquisition_datetime=datetime.now(UTC)))
         doc = {"status": "not_measured", "software": {"version": "warm-up"}, "inputs": None,
                "case": {"laterality": None}}
-        now = datetime.now(timezone.utc)
+        now = datetime.now(UTC)
         build_sr(doc, [source], None, series_uid=generate_uid(prefix=None),
                  sop_instance_uid=generate_uid(prefix=None), content_datetime=now,
                  uid_for=lambda what: generate_uid(prefix=None))
@@ -251,7 +250,7 @@ class Pipeline:
         recorder = CaseRecorder(folder / "recording.rrd", case.case_id, run_id)
         when = triggered or max((v.acquisition_datetime for v in views
                                  if v.acquisition_datetime is not None),
-                                default=datetime(1970, 1, 1, tzinfo=timezone.utc))
+                                default=datetime(1970, 1, 1, tzinfo=UTC))
         try:
             return self._run(case, views, run_id, folder, recorder, started, on_output,
                              measurement, when, min_separation_deg)

@@ -30,7 +30,7 @@ import re
 import shutil
 import uuid
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -295,7 +295,7 @@ def cmd_plan_add(args: argparse.Namespace) -> int:
     plan = Plan(tibia, fibula, landmarks, build_pin(spec), spec, target, args.patient_id,
                 segmentation_sd_mm=args.segmentation_mm)
     provenance = {
-        "imported": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "imported": datetime.now(UTC).isoformat(timespec="seconds"),
         "landmarks": how,
         "sources": {name: {"file": str(Path(p).resolve()), "sha256": _sha256(p)}
                     for name, p in (("tibia", args.tibia), ("fibula", args.fibula),

@@ -31,13 +31,12 @@ from slamtka.drivers.kinematics import (
     check_dicom_angles,
     initial_view_poses,
 )
+from slamtka.service.clock import review_pairing
+from slamtka.service.frames import Frame
 from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles
 from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
 from slamtka.solver.geometry import Pose, look_at
 from slamtka.solver.plan import Plan
-
-from slamtka.service.clock import review_pairing
-from slamtka.service.frames import Frame
 
 __all__ = ["beam_direction_anat", "positioner_T_anat_cam", "planned_pins",
            "view_separation_deg", "ViewGeometry", "ViewPairing", "InitialViews"]

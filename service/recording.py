@@ -32,11 +32,10 @@ import rerun as rr
 import rerun_bindings
 import trimesh
 
+from slamtka.service.frames import Frame
 from slamtka.solver.geometry import Pose
 from slamtka.solver.optimizer import IterationInfo
 from slamtka.solver.plan import Plan
-
-from slamtka.service.frames import Frame
 
 __all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
 

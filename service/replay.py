@@ -32,7 +32,6 @@ from slamtka.solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
 from slamtka.solver.sdf import mesh_digest
 from slamtka.solver.slam import InitialGuess, SolverConfig, solve_joint
 
-
 __all__ = ["Recording", "read_recording", "check_recording", "resolve_recording",
            "add_replay_parser"]
 

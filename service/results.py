@@ -11,7 +11,7 @@ the solver-side members ``null`` and the reasons filled in.
 from __future__ import annotations
 
 import json
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from functools import lru_cache
 from importlib.resources import files
 
@@ -83,7 +83,7 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
                else "pass" if doc["deviation"]["within_tolerance"] else "fail")
     doc.update({
         "schema_version": SCHEMA_VERSION,
-        "created": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+        "created": datetime.now(UTC).isoformat(timespec="milliseconds"),
         "run_id": run_id,
         "reason": None if measured else (doc["reason"] or reasons[0]),
         "reasons": reasons,

@@ -27,12 +27,20 @@ from __future__ import annotations
 import logging
 import re
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from pydicom.dataset import Dataset
 from pydicom.pixels.decoders.base import get_decoder
-from pydicom.uid import (UID, ExplicitVRLittleEndian, ImplicitVRLittleEndian, JPEGLossless,
-                         JPEGLosslessSV1, JPEGLSLossless, JPEGLSNearLossless, RLELossless)
+from pydicom.uid import (
+    UID,
+    ExplicitVRLittleEndian,
+    ImplicitVRLittleEndian,
+    JPEGLossless,
+    JPEGLosslessSV1,
+    JPEGLSLossless,
+    JPEGLSNearLossless,
+    RLELossless,
+)
 from pynetdicom import AE, evt
 from pynetdicom.sop_class import (
     DigitalXRayImageStorageForPresentation,

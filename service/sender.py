@@ -33,10 +33,10 @@ import pydicom
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 from pynetdicom import AE
 
+from slamtka.service.atomic_files import remove_partial, write_json_atomic
 from slamtka.service.audit import AuditLog
 from slamtka.service.config import Destination, SenderConfig, normalise_fingerprint
 from slamtka.service.tls import client_ssl_context
-from slamtka.service.atomic_files import remove_partial, write_json_atomic
 
 __all__ = ["Sender", "SendJob", "OutgoingObject"]
 

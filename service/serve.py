@@ -32,23 +32,22 @@ import sys
 import threading
 import time
 import warnings
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from slamtka.drivers.encoder_link import EncoderLink, LinkConfig
 from slamtka.drivers.kinematics import CArmKinematics
-
+from slamtka.service.atomic_files import remove_partial
 from slamtka.service.audit import AuditLog, file_digests, last_event
 from slamtka.service.cases import Case, CaseAssembler
 from slamtka.service.config import ServiceConfig, load_config
+from slamtka.service.health import HealthServer, WorkerHeartbeat
 from slamtka.service.plans import PlanStore
-from slamtka.service.retention import Retention, pending_case_ids
 from slamtka.service.poses import ViewGeometry
+from slamtka.service.retention import Retention, pending_case_ids
 from slamtka.service.scp import DicomReceiver
 from slamtka.service.sender import Sender
-from slamtka.service.atomic_files import remove_partial
 from slamtka.service.spool import Spool, SpoolEntry
-from slamtka.service.health import HealthServer, WorkerHeartbeat
 from slamtka.service.status import Metrics, StatusBoard, read_status
 from slamtka.service.story import LinkWatch, tell
 from slamtka.service.systemd import Watchdog, notify, watchdog_interval_s
@@ -137,7 +136,7 @@ class Service:
         self.heartbeat = WorkerHeartbeat()
         self._watchdog: Watchdog | None = None
         self._state = "starting"
-        self._started = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        self._started = datetime.now(UTC).isoformat(timespec="seconds")
         self._last_result = last_event(config.audit_log, "processed")
         self.status = StatusBoard(config.status_file, {
             "state": lambda: self._state, "started": lambda: self._started,

@@ -18,15 +18,14 @@ import logging
 import os
 import threading
 from collections import Counter
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
-from slamtka.solver.jsonfile import read_json_object
-
-from slamtka.service.config import ServiceConfig, load_config
 from slamtka.service.atomic_files import write_json_atomic
+from slamtka.service.config import ServiceConfig, load_config
 from slamtka.service.health import STALE_INTERVALS, judge, prometheus_text
 from slamtka.service.tls import client_ssl_context
+from slamtka.solver.jsonfile import read_json_object
 
 log = logging.getLogger("slamtka.status")
 
@@ -92,7 +91,7 @@ class StatusBoard:
 
     def write(self) -> dict:
         with self._lock:
-            doc = {"updated": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+            doc = {"updated": datetime.now(UTC).isoformat(timespec="milliseconds"),
                    "stale_after_s": STALE_INTERVALS * self.interval_s, "pid": os.getpid(),
                    **{name: source() for name, source in self.sources.items()}}
             write_json_atomic(self.path, doc)

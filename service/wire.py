@@ -36,7 +36,7 @@ import ssl
 import struct
 import threading
 from collections import Counter
-from typing import Callable
+from collections.abc import Callable
 
 from pydicom.uid import UID
 from pynetdicom.transport import AssociationSocket, RequestHandler, ThreadedAssociationServer
@@ -118,7 +118,7 @@ class _Violation(OSError):
 class GuardedSocket(AssociationSocket):
     """pynetdicom's socket with every PDU checked before (header) and after (body) it is read."""
 
-    guard: "GuardedServer"
+    guard: GuardedServer
     peer: dict
     _body_type: int | None
     _message_bytes: dict
@@ -128,7 +128,7 @@ class GuardedSocket(AssociationSocket):
     certificate: str  # SHA-256 of the client certificate ("" without TLS)
 
     @classmethod
-    def adopt(cls, plain: AssociationSocket, server: "GuardedServer", peer: dict) -> "GuardedSocket":
+    def adopt(cls, plain: AssociationSocket, server: GuardedServer, peer: dict) -> GuardedSocket:
         """Take over the socket pynetdicom built (its state, its queued connection event)."""
         sock = cls.__new__(cls)
         sock.__dict__.update(plain.__dict__)

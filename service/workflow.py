@@ -18,23 +18,29 @@ import json
 import logging
 import os
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from slamtka.solver.geometry import Pose
-from slamtka.solver.measurement import pin_axis_points
-
+from slamtka.service.atomic_files import write_atomic, write_json_atomic
 from slamtka.service.audit import AuditLog
 from slamtka.service.cases import Case, View, run_id_of
 from slamtka.service.display import Status, build_status_objects
 from slamtka.service.frames import decode_frame
 from slamtka.service.headers import sanitised_header
-from slamtka.service.pinsets import (MIN_PIN_THRESHOLD_PX, NO_CONTOURS, PIN_NOISE_FACTOR, CasePinSets, PinSet,
-                      PinSetStore, pin_disagreement_px)
+from slamtka.service.pinsets import (
+    MIN_PIN_THRESHOLD_PX,
+    NO_CONTOURS,
+    PIN_NOISE_FACTOR,
+    CasePinSets,
+    PinSet,
+    PinSetStore,
+    pin_disagreement_px,
+)
 from slamtka.service.sender import OutgoingObject, Sender
-from slamtka.service.atomic_files import write_atomic, write_json_atomic
+from slamtka.solver.geometry import Pose
+from slamtka.solver.measurement import pin_axis_points
 
 __all__ = ["Workflow", "write_request", "REQUEST_KINDS"]
 
@@ -53,7 +59,7 @@ def write_request(requests_dir: Path, kind: str, case_id: str, who: str) -> Path
     stamp = f"{time.time_ns()}-{os.getpid()}"
     path = requests_dir / f"{stamp}-{kind}-{case_id}.json"
     write_json_atomic(path, {"kind": kind, "case_id": case_id, "who": who,
-                             "requested": datetime.now(timezone.utc).isoformat()})
+                             "requested": datetime.now(UTC).isoformat()})
     return path
 
 
@@ -240,7 +246,7 @@ class Workflow:
                 "ctr_deg": last["ctr_deg"], "str_deg": last["str_deg"], "verdict": last["verdict"]}
             record = {"run_id": run_id, "base": base, "pin_set": pin_set.number,
                       "number": len(pin_set.runs) + 1, "previous": previous,
-                      "triggered": datetime.now(timezone.utc).isoformat()}
+                      "triggered": datetime.now(UTC).isoformat()}
             pin_set.runs.append(record)
             self.store.save(sets)
             found = (pin_set, record)
@@ -309,7 +315,7 @@ class Workflow:
             ds = self.pipeline.spool.read(view.entry)
             pixels = decode_frame(ds).pixels
             del ds.PixelData
-            when = view.acquisition_datetime or datetime(1970, 1, 1, tzinfo=timezone.utc)
+            when = view.acquisition_datetime or datetime(1970, 1, 1, tzinfo=UTC)
             sr, sc = build_status_objects(
                 sanitised_header(ds), pixels, status, laterality=case.laterality,
                 version=software_version(), when=when, institution=self.institution,

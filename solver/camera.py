@@ -8,10 +8,9 @@ C-arm's stored calibration.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
 import operator
+from dataclasses import dataclass
 
 import numpy as np
 

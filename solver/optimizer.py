@@ -12,9 +12,10 @@ iteratively reweighted least squares.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 

@@ -22,8 +22,8 @@ for every view, so the motion between views is kept exactly as the encoders meas
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from itertools import product
 
 import cv2

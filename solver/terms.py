@@ -27,8 +27,8 @@ from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_ri
 from slamtka.solver.kernels import nearest_points
 from slamtka.solver.observations import DistanceMap
 from slamtka.solver.optimizer import Linearization, RobustLoss, State
-from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
 from slamtka.solver.sdf import SignedDistanceField
+from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
 
 __all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
            "pose_increments", "projected"]

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slamtka.sim.bone_phantom import phantom_plan as build_phantom_plan
+from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
 from slamtka.sim.xray import XRayParams, XRayScene, render_radiograph
 from slamtka.solver.plan import Plan
-from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
-from slamtka.sim.bone_phantom import phantom_plan as build_phantom_plan
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "knee-smith2019"
 REAL_LANDMARKS = Path(__file__).parent / "data" / "knee-smith2019-landmarks.json"

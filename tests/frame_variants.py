@@ -3,7 +3,7 @@ PACS or a damaged file may hand over, derived from a rendered frame or made up o
 
 from __future__ import annotations
 
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import cv2
 import numpy as np

@@ -7,8 +7,8 @@ import socket
 
 import numpy as np
 
-from slamtka.service.frames import Frame
 from slamtka.bench.pki import make_pki
+from slamtka.service.frames import Frame
 
 __all__ = ["free_port", "small_frame", "make_pki"]
 
@@ -25,7 +25,7 @@ def small_frame(**changes) -> Frame:
     fields = dict(pixels=np.random.default_rng(0).integers(0, 4000, (64, 64)).astype(np.uint16),
                   imager_pixel_spacing_mm=(0.3, 0.3), primary_angle_deg=-30.0,
                   secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
-                  acquisition_datetime=dt.datetime.now(dt.timezone.utc), patient_id="P-1",
+                  acquisition_datetime=dt.datetime.now(dt.UTC), patient_id="P-1",
                   patient_name="Doe^Jane", laterality="R", bits_stored=12)
     fields.update(changes)
     return Frame(**fields)

@@ -9,8 +9,8 @@ import socket
 
 import numpy as np
 import pytest
-from pydicom.dataelem import RawDataElement
 from pydicom.datadict import dictionary_VR
+from pydicom.dataelem import RawDataElement
 from pydicom.tag import Tag
 from pydicom.uid import RLELossless
 
@@ -20,14 +20,19 @@ from slamtka.service.calibrate import read_phantom_image as read_calibration_ima
 from slamtka.service.cli import main
 from slamtka.service.config import ConfigError, config_from_dict
 from slamtka.service.frames import Frame, FrameError, decode_frame, encode_frame
+from slamtka.sim.bone_phantom import phantom_plan
+from slamtka.sim.simulate import default_camera
 from slamtka.solver.camera import Camera
 from slamtka.solver.case import load_case, write_case
 from slamtka.solver.geometry import Pose
-from slamtka.solver.imaging.calibration_file import CalibrationError, _digest, load_calibration, write_calibration
+from slamtka.solver.imaging.calibration_file import (
+    CalibrationError,
+    _digest,
+    load_calibration,
+    write_calibration,
+)
 from slamtka.solver.observations import ViewObservation
-from slamtka.sim.simulate import default_camera
 from slamtka.solver.slam import InitialGuess
-from slamtka.sim.bone_phantom import phantom_plan
 
 CAMERA = default_camera()
 

@@ -12,6 +12,7 @@ import pydicom
 import pytest
 from pydicom.uid import generate_uid
 from pynetdicom import AE
+from service_testing import free_port, small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics
 from slamtka.service.audit import AuditLog
@@ -25,14 +26,13 @@ from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry
 from slamtka.service.scp import DicomReceiver
 from slamtka.service.spool import Spool
-from service_testing import free_port, small_frame
-from slamtka.solver.camera import Camera
-from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
-from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
 from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
-from slamtka.solver.imaging.plate import PhantomSpec
-from slamtka.sim.xray import default_distortion
 from slamtka.sim.simulate import default_camera
+from slamtka.sim.xray import default_distortion
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
+from slamtka.solver.imaging.plate import PhantomSpec
 
 SPACING = (230 / 1024, 230 / 1024)
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from slamtka.service.cli import main
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.degenerate import DEGENERATE_KINDS, degenerate_case
 from slamtka.solver.plan import Plan
-from slamtka.sim.bone_phantom import phantom_plan
 
 
 @pytest.fixture(scope="module")

@@ -13,17 +13,22 @@ from scipy.spatial import cKDTree
 
 from slamtka.bench.imaging import contour_scores, residual_distortion_px
 from slamtka.service.cli import main
-from slamtka.solver.camera import Camera
-from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
-from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate, match_grid
-from slamtka.solver.imaging.ballgrid import GridError
-from slamtka.solver.imaging.contours import ContourConfig, ContourError, extract_contours, load_manual_contours
-from slamtka.solver.imaging.distortion import Distortion
 from slamtka.sim.plate_images import simulate_phantom_images
-from slamtka.solver.imaging.plate import PhantomSpec
 from slamtka.sim.raster import path_lengths
-from slamtka.sim.xray import XRayParams, default_distortion, render_radiograph
 from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.sim.xray import XRayParams, default_distortion, render_radiograph
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.ballgrid import GridError
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate, match_grid
+from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration, write_calibration
+from slamtka.solver.imaging.contours import (
+    ContourConfig,
+    ContourError,
+    extract_contours,
+    load_manual_contours,
+)
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.solver.imaging.plate import PhantomSpec
 
 
 def test_path_lengths_of_a_sphere_match_the_chord_formula():

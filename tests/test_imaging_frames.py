@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import numpy as np
 import pydicom
 import pytest
-
 from pydicom.dataset import Dataset
 from pydicom.uid import ExplicitVRLittleEndian
 
@@ -24,7 +23,7 @@ from slamtka.service.frames import (
 )
 from slamtka.service.scp import check_instance
 
-WHEN = datetime(2025, 3, 14, 9, 26, 53, 589793, tzinfo=timezone.utc)
+WHEN = datetime(2025, 3, 14, 9, 26, 53, 589793, tzinfo=UTC)
 
 
 def _frame(**changes) -> Frame:
@@ -78,7 +77,7 @@ def test_local_time_with_offset_is_read_as_utc():
     ds = encode_frame(_frame())
     ds.AcquisitionDateTime = "20250314102653.5+0100"
     assert decode_frame(ds).acquisition_datetime == datetime(2025, 3, 14, 9, 26, 53, 500000,
-                                                             tzinfo=timezone.utc)
+                                                             tzinfo=UTC)
     del ds.AcquisitionDateTime
     ds.ContentDate, ds.ContentTime, ds.TimezoneOffsetFromUTC = "20250314", "0426", "-0500"
     assert decode_frame(ds).acquisition_datetime == WHEN.replace(second=0, microsecond=0) + timedelta(

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from service_testing import small_frame
 
 from slamtka.service.frames import FrameError, decode_frame, encode_frame
 from slamtka.service.pixel_layouts import layout_cases
-from service_testing import small_frame
 
 CASES = layout_cases(encode_frame(small_frame()))
 

@@ -10,9 +10,6 @@ import pytest
 
 from slamtka.bench.realism import SHARED_DATA, _scores, realism_case
 from slamtka.service.cli import main
-from slamtka.solver.imaging.contours import UNFORESEEN_PREFIX, ContourError, extract_contours
-from slamtka.solver.imaging.field import field_of_view, remove_overlays
-from slamtka.solver.imaging.response import linearised_attenuation
 from slamtka.sim.operating_room import (
     NUISANCES,
     OperatingRoom,
@@ -21,8 +18,11 @@ from slamtka.sim.operating_room import (
     room_scene,
     view_angles,
 )
-from slamtka.sim.xray import XRayParams
 from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.sim.xray import XRayParams
+from slamtka.solver.imaging.contours import UNFORESEEN_PREFIX, ContourError, extract_contours
+from slamtka.solver.imaging.field import field_of_view, remove_overlays
+from slamtka.solver.imaging.response import linearised_attenuation
 
 from frame_variants import TRANSFORMS, made_up_frames  # isort: skip
 

@@ -7,20 +7,35 @@ import select
 import threading
 import time
 import tty
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 import numpy as np
 import pytest
 
 from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultSpec, MotionScript, SimulatedCArm
-from slamtka.drivers.kinematics import JointReading
 from slamtka.drivers.encoder_link import (
-    EncoderLink, EncoderReading, LinkConfig, PortBusyError, PortNotFoundError, PortPermissionError,
-    ProtocolVersionError, ReadingHistory, WrongDeviceError, open_port,
+    EncoderLink,
+    EncoderReading,
+    LinkConfig,
+    PortBusyError,
+    PortNotFoundError,
+    PortPermissionError,
+    ProtocolVersionError,
+    ReadingHistory,
+    WrongDeviceError,
+    open_port,
 )
+from slamtka.drivers.kinematics import JointReading
 from slamtka.drivers.protocol import (
-    Frame, FrameParser, MessageType, ResultCode, StatusFlags, encode_frame, encode_identity,
-    encode_reading, encode_result,
+    Frame,
+    FrameParser,
+    MessageType,
+    ResultCode,
+    StatusFlags,
+    encode_frame,
+    encode_identity,
+    encode_reading,
+    encode_result,
 )
 
 SCRIPT = MotionScript.from_orbital((0.0, -30.0, 30.0), hold_s=0.5, move_s=2.0)
@@ -82,16 +97,16 @@ def test_lookup_by_time_and_the_maximum_age(sim):
         assert past is not None and abs((past.time_utc - latest.time_utc).total_seconds() - -0.1) < 0.006
         assert link.reading_at(past.time_utc) == past
         assert link.reading_at(latest.time_utc - timedelta(seconds=30)) is None  # before the history
-        assert link.reading_at(datetime.now(timezone.utc) + timedelta(seconds=1)) is None  # the future
+        assert link.reading_at(datetime.now(UTC) + timedelta(seconds=1)) is None  # the future
         with pytest.raises(ValueError, match="timezone-aware"):
             link.reading_at(datetime.now())
         with pytest.raises(ValueError, match="never exceeded"):
-            link.reading_at(datetime.now(timezone.utc), max_age_s=0.5)
+            link.reading_at(datetime.now(UTC), max_age_s=0.5)
         # A frozen device: once its last reading is older than the maximum age, nothing is
         # handed out, and the link says why.
         began = sim.stall(0.5)
         while time.monotonic() < began + 0.45:
-            now_utc, now = datetime.now(timezone.utc), time.monotonic()
+            now_utc, now = datetime.now(UTC), time.monotonic()
             fresh, at = link.latest(), link.reading_at(now_utc)
             for reading in (fresh, at):
                 assert reading is None or reading.age_s(now) <= 0.1 + 1e-9
@@ -285,7 +300,7 @@ def test_implausible_readings_are_rejected():
 def test_history_is_bounded_and_configuration_is_checked():
     history = ReadingHistory(16)
     assert history.last() is None and history.nearest(0.0, 0.1) is None
-    base = datetime(2024, 1, 1, tzinfo=timezone.utc)
+    base = datetime(2024, 1, 1, tzinfo=UTC)
     for k in range(40):
         t = base + timedelta(seconds=k)
         history.append(EncoderReading(k, k, t, t, float(k), JointReading(), 0), t.timestamp())

@@ -7,13 +7,18 @@ import numpy as np
 import pytest
 
 from slamtka.drivers.kinematics import (
-    CArmKinematics, JointReading, PatientSetup, _beam, check_dicom_angles, dicom_angles,
+    CArmKinematics,
+    JointReading,
+    PatientSetup,
+    _beam,
+    check_dicom_angles,
+    dicom_angles,
     initial_view_poses,
 )
-from slamtka.solver.anatomy import Landmarks
-from slamtka.solver.geometry import so3_log
 from slamtka.sim.bone_phantom import build_phantom
 from slamtka.sim.simulate import SOURCE_TO_ISOCENTRE_MM, _view_poses
+from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.geometry import so3_log
 
 KIN = CArmKinematics()
 REST = dict(lift_mm=200.0, travel_mm=100.0)  # a typical knee position, mid-range

@@ -11,10 +11,29 @@ import pytest
 
 from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultInjector, FaultSpec
 from slamtka.drivers.protocol import (
-    FRAME_OVERHEAD, MARKER, MAX_PAYLOAD, AxisInfo, DeviceIdentity, Frame, FrameParser, MessageType,
-    ProtocolError, ResultCode, Status, crc16, decode_identity, decode_reading, decode_result,
-    decode_status, decode_stream_start, encode_frame, encode_identity, encode_reading, encode_result,
-    encode_status, encode_stream_start,
+    FRAME_OVERHEAD,
+    MARKER,
+    MAX_PAYLOAD,
+    AxisInfo,
+    DeviceIdentity,
+    Frame,
+    FrameParser,
+    MessageType,
+    ProtocolError,
+    ResultCode,
+    Status,
+    crc16,
+    decode_identity,
+    decode_reading,
+    decode_result,
+    decode_status,
+    decode_stream_start,
+    encode_frame,
+    encode_identity,
+    encode_reading,
+    encode_result,
+    encode_status,
+    encode_stream_start,
 )
 
 

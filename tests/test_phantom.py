@@ -7,7 +7,6 @@ frame, have adult dimensions, and, above all, not be rotationally symmetric:
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest

@@ -9,15 +9,15 @@ from __future__ import annotations
 import pytest
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
+from service_testing import make_pki, small_frame
 
+from slamtka.bench.pki import client_context
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import ConfigError, config_from_dict
 from slamtka.service.frames import encode_frame
-from slamtka.bench.pki import client_context
 from slamtka.service.scp import DicomReceiver
 from slamtka.service.spool import Spool
 from slamtka.service.tls import certificate_sha256
-from service_testing import make_pki, small_frame
 
 
 @pytest.fixture

@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from pydicom.uid import generate_uid
+from service_testing import small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, initial_view_poses
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.frames import encode_frame
 from slamtka.service.poses import ViewGeometry, planned_pins, positioner_T_anat_cam
 from slamtka.service.spool import Spool
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.solver.measurement import fit_resection_plane
 from slamtka.solver.plan import Target
-from slamtka.sim.bone_phantom import phantom_plan
-from service_testing import small_frame
 
 
 def _geometry() -> ViewGeometry:

@@ -14,7 +14,7 @@ from slamtka.drivers.protocol import StatusFlags
 from slamtka.service.clock import review_pairing
 from slamtka.solver.anatomy import Landmarks
 
-T0 = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.timezone.utc)
+T0 = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.UTC)
 KIN = CArmKinematics()
 SETUP = PatientSetup.from_config(Landmarks.nominal(), {})
 

@@ -21,8 +21,8 @@ import pydicom
 import pytest
 
 from slamtka.service.audit import read_audit
-from slamtka.service.cli import main
 from slamtka.service.cases import case_id_of, run_id_of
+from slamtka.service.cli import main
 from slamtka.service.display import STATUS_SERIES
 from slamtka.service.frames import encode_frame
 from slamtka.service.results import validate_result

@@ -12,14 +12,14 @@ import psutil
 import pytest
 from pydicom.uid import UID
 
-from slamtka.service.audit import AuditLog, read_audit
 from slamtka.bench.faults import SoakFigures, crash, serial_faults, soak
 from slamtka.bench.hardening import run_items
+from slamtka.service.atomic_files import TEMP_PREFIX, remove_partial
+from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import Destination, SenderConfig
 from slamtka.service.pipeline import result_uid
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.sender import OutgoingObject, Sender
-from slamtka.service.atomic_files import TEMP_PREFIX, remove_partial
 from slamtka.service.spool import Spool
 from slamtka.service.status import StatusBoard
 

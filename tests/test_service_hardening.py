@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import pytest
 
-from slamtka.service.audit import read_audit
 from slamtka.bench.hardening import ITEMS, run_items
-from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
 from slamtka.bench.hostile import frame_dataset_bytes, nested_sequence, truncations
+from slamtka.service.audit import read_audit
+from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
 
 SMALL = {"uids": 37, "truncation": 40, "pixel_length": 7, "element_length": 6, "nesting": 3,
          "deflate": 2, "oversize": 2, "fuzz_datasets": 300, "fuzz_protocol": 300,

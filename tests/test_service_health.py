@@ -14,20 +14,20 @@ import sys
 import time
 import urllib.error
 import urllib.request
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import pytest
+from service_testing import free_port
 
 from slamtka.drivers.encoder_link import LinkState
-from slamtka.sim.simulate import default_camera
-from slamtka.solver.imaging.calibration_file import write_calibration
 from slamtka.service.health import judge, prometheus_text
 from slamtka.service.status import Metrics
 from slamtka.service.story import LinkWatch, tell
-from service_testing import free_port
+from slamtka.sim.simulate import default_camera
+from slamtka.solver.imaging.calibration_file import write_calibration
 
-NOW = datetime(2026, 12, 5, 9, 0, tzinfo=timezone.utc)
+NOW = datetime(2026, 12, 5, 9, 0, tzinfo=UTC)
 SLAMTKA = [sys.executable, "-m", "slamtka.service.cli"]
 
 
@@ -56,7 +56,7 @@ def test_health_is_judged_from_freshness_state_and_the_worker(snapshot, up, why)
 
 
 def test_metrics_say_down_when_the_snapshot_is_stale():
-    fresh = prometheus_text({**_snapshot(), "updated": datetime.now(timezone.utc).isoformat()})
+    fresh = prometheus_text({**_snapshot(), "updated": datetime.now(UTC).isoformat()})
     stale = prometheus_text(_snapshot(age_s=3600.0))
     assert "slamtka_up 1.0" in fresh and "slamtka_up 0.0" in stale
     assert "slamtka_instances_received_total 4.0" in stale

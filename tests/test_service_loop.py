@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pydicom
 import pytest
+from service_testing import small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics
 from slamtka.service.audit import AuditLog, read_audit
@@ -31,12 +32,11 @@ from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry
 from slamtka.service.sender import Sender
 from slamtka.service.spool import Spool
-from slamtka.sim.theatre import Theatre
 from slamtka.service.workflow import Workflow, write_request
-from service_testing import small_frame
+from slamtka.sim.theatre import Theatre
 
 pytest.importorskip("slamtka.solver.imaging.calibration")
-_WHEN = dt.datetime(2026, 5, 6, 7, 8, 9, tzinfo=dt.timezone.utc)
+_WHEN = dt.datetime(2026, 5, 6, 7, 8, 9, tzinfo=dt.UTC)
 
 
 @pytest.fixture(scope="module")
@@ -54,9 +54,8 @@ class Loop:
     """A spool, cases, the pipeline and the workflow in ``root`` (no network)."""
 
     def __init__(self, root, th: Theatre, calibration_path, new_set_on_new_series=False):
-        from slamtka.solver.imaging.calibration_file import load_calibration
-
         from slamtka.service.pipeline import Pipeline
+        from slamtka.solver.imaging.calibration_file import load_calibration
 
         self.root = root
         self.spool = Spool(root / "spool")
@@ -303,10 +302,10 @@ def test_overlay_text_wraps_and_is_never_cut():
 
 
 def test_pin_disagreement_grows_with_a_turn_of_the_pins(rendered):
+    from slamtka.drivers.kinematics import initial_view_poses
     from slamtka.solver.imaging.calibration_file import load_calibration
     from slamtka.solver.imaging.contours import extract_contours
     from slamtka.solver.measurement import pin_axis_points
-    from slamtka.drivers.kinematics import initial_view_poses
 
     th, calibration_path, case, again, turned = rendered
     calibration = load_calibration(calibration_path)

@@ -14,12 +14,12 @@ from pathlib import Path
 import pytest
 from pynetdicom import AE
 from pynetdicom.sop_class import XRayAngiographicImageStorage
+from service_testing import free_port, small_frame
 
 from slamtka.service.frames import encode_frame
 from slamtka.service.plans import PlanStore
 from slamtka.sim.simulate import default_camera
 from slamtka.solver.imaging.calibration_file import write_calibration
-from service_testing import free_port, small_frame
 
 PATIENT_ID = "DOE-1234567"
 

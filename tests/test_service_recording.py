@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from slamtka.solver.optimizer import IterationInfo, State
+from service_testing import small_frame
 
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.replay import check_recording, read_recording
 from slamtka.sim.bone_phantom import phantom_plan
-from service_testing import small_frame
+from slamtka.solver.optimizer import IterationInfo, State
 
 
 @pytest.fixture(scope="module")

@@ -13,11 +13,7 @@ import numpy as np
 import pydicom
 import pytest
 from pydicom.uid import generate_uid
-
-from slamtka.solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
-from slamtka.solver.plan import Target
-from slamtka.sim.simulate import SimulationConfig, simulate_case
-from slamtka.solver.slam import InitialGuess, SolveOutcome
+from service_testing import small_frame
 
 from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
 from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
@@ -25,9 +21,12 @@ from slamtka.service.frames import encode_frame
 from slamtka.service.pipeline import plane_polygon, result_uid
 from slamtka.service.results import build_result, result_schema, validate_result
 from slamtka.sim.bone_phantom import phantom_plan
-from service_testing import small_frame
+from slamtka.sim.simulate import SimulationConfig, simulate_case
+from slamtka.solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
+from slamtka.solver.plan import Target
+from slamtka.solver.slam import InitialGuess, SolveOutcome
 
-_WHEN = dt.datetime(2026, 3, 4, 10, 11, 12, 345000, tzinfo=dt.timezone.utc)
+_WHEN = dt.datetime(2026, 3, 4, 10, 11, 12, 345000, tzinfo=dt.UTC)
 needs_dicom3tools = pytest.mark.skipif(shutil.which("dciodvfy") is None or
                                        shutil.which("dsrdump") is None,
                                        reason="dicom3tools/DCMTK not installed")

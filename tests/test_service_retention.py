@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
+from service_testing import small_frame
 
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import RetentionConfig, config_from_dict
@@ -21,7 +22,6 @@ from slamtka.service.scp import DicomReceiver
 from slamtka.service.spool import Spool
 from slamtka.sim.simulate import default_camera
 from slamtka.solver.imaging.calibration_file import write_calibration
-from service_testing import small_frame
 
 DAY = 86400.0
 NOW = time.time()

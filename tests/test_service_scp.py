@@ -10,14 +10,14 @@ import time
 import pytest
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
+from service_testing import make_pki, small_frame
 
+from slamtka.bench.pki import client_context
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import config_from_dict
 from slamtka.service.frames import encode_frame
-from slamtka.bench.pki import client_context
 from slamtka.service.scp import DicomReceiver, check_instance
 from slamtka.service.spool import Spool, entry_id
-from service_testing import make_pki, small_frame
 
 needs_dcmtk = pytest.mark.skipif(shutil.which("storescu") is None, reason="DCMTK not installed")
 

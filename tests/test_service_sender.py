@@ -5,13 +5,13 @@ from __future__ import annotations
 import time
 
 from pydicom.uid import generate_uid
+from service_testing import free_port, small_frame
 
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import Destination, SenderConfig
 from slamtka.service.frames import encode_frame
 from slamtka.service.sender import OutgoingObject, Sender
 from slamtka.sim.theatre import ResultCollector
-from service_testing import free_port, small_frame
 
 SC = "1.2.840.10008.5.1.4.1.1.7"
 

@@ -5,14 +5,14 @@ from __future__ import annotations
 import ssl
 
 import pytest
+from test_service_sender import _objects
 
+from slamtka.bench.pki import OTHER_HOST, make_pki
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import ConfigError, Destination, SenderConfig, config_from_dict
-from slamtka.bench.pki import OTHER_HOST, make_pki
 from slamtka.service.sender import Sender
-from slamtka.sim.theatre import ResultCollector
 from slamtka.service.tls import certificate_sha256
-from test_service_sender import _objects
+from slamtka.sim.theatre import ResultCollector
 
 
 @pytest.fixture(scope="module")

@@ -12,18 +12,23 @@ import pytest
 from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless, RLELossless
 from pynetdicom import AE
 from pynetdicom.sop_class import Verification, XRayAngiographicImageStorage
+from service_testing import small_frame
 
+from slamtka.bench.hostile import wire_bytes
 from slamtka.service.audit import AuditLog, read_audit
-from slamtka.service.compressed import (ENCODERS, NEAR_LOSSLESS_DEVIATION, compress, encoders_available,
-                                storescu)
+from slamtka.service.compressed import (
+    ENCODERS,
+    NEAR_LOSSLESS_DEVIATION,
+    compress,
+    encoders_available,
+    storescu,
+)
 from slamtka.service.config import config_from_dict
 from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
 from slamtka.service.frames import decode_frame, encode_frame
-from slamtka.bench.hostile import wire_bytes
 from slamtka.service.scp import DicomReceiver
 from slamtka.service.spool import Spool
 from slamtka.service.status import Metrics
-from service_testing import small_frame
 
 pytestmark = pytest.mark.skipif(not encoders_available(), reason="DCMTK not installed")
 

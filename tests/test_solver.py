@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver import gates, optimizer
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
-from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.slam import METHODS, InitialGuess, JointProblem, SolverConfig, seat_on_rays, solve_joint
 
 
@@ -482,8 +482,8 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
 def test_pins_that_are_not_parallel_are_named(phantom_plan):
     """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
     tip (whatever the contours say) is refused by name."""
-    from slamtka.solver.geometry import rotation_about
     from slamtka.solver.gates import pin_divergence
+    from slamtka.solver.geometry import rotation_about
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())

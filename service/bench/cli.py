@@ -15,22 +15,22 @@ import argparse
 import json
 import time
 import traceback
-from dataclasses import replace
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from slamtka.bench.link import add_link_bench
 from slamtka.bench.args import names_from
 from slamtka.bench.degenerate import add_degenerate_bench_parser
 from slamtka.bench.hardening import add_hardening_bench_parser
 from slamtka.bench.imaging import add_imaging_bench_parser
+from slamtka.bench.link import add_link_bench
 from slamtka.bench.realism import add_realism_bench_parser
 from slamtka.bench.service import add_service_bench_parser
 from slamtka.bench.speed import add_speed_bench_parser
 from slamtka.bench.workflow import add_workflow_bench_parser
-from slamtka.solver.plan import Plan
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.simulate import (
     ROT_SD_PER_LEVEL_RAD,
     TRANS_SD_PER_LEVEL_MM,
@@ -38,8 +38,8 @@ from slamtka.sim.simulate import (
     SimulationError,
     simulate_case,
 )
+from slamtka.solver.plan import Plan
 from slamtka.solver.slam import METHODS, SolverConfig, solve_joint
-from slamtka.sim.bone_phantom import phantom_plan
 
 SUCCESS_DEG = 1.0
 

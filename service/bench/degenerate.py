@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.degenerate import DEGENERATE_KINDS, degenerate_case
 from slamtka.solver.plan import Plan
 from slamtka.solver.slam import solve_joint
-from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["add_degenerate_bench_parser"]
 

@@ -30,27 +30,34 @@ import re
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 import psutil
 import pydicom
 from pydicom.uid import generate_uid
 
-from slamtka.drivers.carm_sim import FaultSpec
-
-from slamtka.service.audit import read_audit
 from slamtka.bench.hardening import Tally
+from slamtka.bench.hostile import (
+    Dropped,
+    RawAssociation,
+    dataset_bytes,
+    element_length_cases,
+    malformed_pdus,
+    pixel_length_cases,
+    truncations,
+    with_uid,
+)
+from slamtka.drivers.carm_sim import FaultSpec
+from slamtka.service.audit import read_audit
 from slamtka.service.cases import case_id_of, run_id_of
-from slamtka.service.frames import Frame
-from slamtka.bench.hostile import (Dropped, RawAssociation, dataset_bytes, element_length_cases,
-                      malformed_pdus, pixel_length_cases, truncations, with_uid)
-from slamtka.service.spool import entry_id
 from slamtka.service.display import STATUS_SERIES
+from slamtka.service.frames import Frame
+from slamtka.service.spool import entry_id
 from slamtka.sim.theatre import CARM_AE, PATIENT_ID, SERVICE_AE, ResultCollector, Theatre
 
 __all__ = ["FAULT_ITEMS", "run_fault_item", "crash", "destination_down", "serial_faults", "soak",
@@ -98,7 +105,7 @@ def small_case(tag: str, index: int, angles_deg: tuple[float, ...] = (-30.0, 30.
         frame = Frame(pixels=rng.integers(0, 4000, (64, 64)).astype(np.uint16),
                       imager_pixel_spacing_mm=(0.3, 0.3), primary_angle_deg=angle,
                       secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
-                      acquisition_datetime=datetime.now(timezone.utc), patient_id=patient,
+                      acquisition_datetime=datetime.now(UTC), patient_id=patient,
                       study_uid=study, series_uid=series, laterality="R", bits_stored=12,
                       instance_number=k)
         views.append((dataset_bytes(frame), frame.sop_instance_uid))
@@ -329,7 +336,7 @@ def _expose(theatre: Theatre, frame: Frame, view: int, fault: str | None,
     elif fault == "line":
         carm.corrupt_line(FaultSpec(drop=1.0))
     time.sleep(max(0.0, exposure - time.monotonic()))
-    frame.acquisition_datetime = datetime.now(timezone.utc)
+    frame.acquisition_datetime = datetime.now(UTC)
     status = client.store(dataset_bytes(frame), frame.sop_instance_uid)
     if fault == "line":
         time.sleep(max(0.0, exposure + 0.5 - time.monotonic()))

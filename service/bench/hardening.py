@@ -21,23 +21,36 @@ import ssl
 import tempfile
 import threading
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import psutil
 import pydicom
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 
+from slamtka.bench.hostile import (
+    DEFLATED,
+    Dropped,
+    RawAssociation,
+    deflate_bomb,
+    element_length_cases,
+    frame_dataset_bytes,
+    malformed_pdus,
+    mutations,
+    nested_sequence,
+    pdata,
+    pixel_length_cases,
+    store_command,
+    truncations,
+    uid_cases,
+    with_uid,
+)
+from slamtka.bench.pki import client_context, make_pki
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.config import config_from_dict
 from slamtka.service.frames import XA_IMAGE_STORAGE, decode_frame
-from slamtka.bench.hostile import (DEFLATED, Dropped, RawAssociation, deflate_bomb,
-                      element_length_cases, frame_dataset_bytes, malformed_pdus, mutations,
-                      nested_sequence, pdata, pixel_length_cases, store_command, truncations,
-                      uid_cases, with_uid)
-from slamtka.bench.pki import client_context, make_pki
 from slamtka.service.scp import DicomReceiver, check_instance
 from slamtka.service.spool import Spool, entry_id
 
@@ -111,7 +124,7 @@ class Tally:
 class PeakRss:
     """Samples this process's resident memory every few milliseconds; the growth in MB."""
 
-    def __enter__(self) -> "PeakRss":
+    def __enter__(self) -> PeakRss:
         self._proc, self._stop = psutil.Process(), threading.Event()
         self.start = self.peak = self._proc.memory_info().rss
         self._thread = threading.Thread(target=self._sample, daemon=True)
@@ -238,7 +251,8 @@ def deflate(tally: Tally, target: Target, count: int) -> None:
                                                             [ImplicitVRLittleEndian])]
             assoc = RawAssociation(target.port, contexts=contexts).associate()
             refused_context = 7 not in assoc.accepted
-            ok, why = _dropped_or_refused(assoc, lambda: assoc.store(bomb, uid, 7 if i % 2 == 0 else 1))
+            context = 7 if i % 2 == 0 else 1
+            ok, why = _dropped_or_refused(assoc, lambda a=assoc, c=context: a.store(bomb, uid, c))
             tally.count(not (ok and refused_context), why)
     tally.notes["memory_growth_mb"] = round(rss.growth_mb, 1)
     tally.notes["bomb_bytes"] = len(bomb)
@@ -256,10 +270,10 @@ def oversize(tally: Tally, target: Target, count: int) -> None:
             assoc = RawAssociation(target.port).associate()
             sent = 0
 
-            def push() -> int:
+            def push(assoc: RawAssociation = assoc, huge_pdu: bool = i % 2 == 0) -> int:
                 nonlocal sent
                 assoc.send(pdata(1, store_command(XA_IMAGE_STORAGE, uid), True, True))
-                if i % 2 == 0:
+                if huge_pdu:
                     assoc.send(b"\x04\x00\xff\xff\xff\xf0")  # a P-DATA-TF of ~4 GiB ...
                     while sent < stream_bytes:  # ... of which we send up to 512 MiB
                         assoc.send(chunk)

@@ -13,8 +13,8 @@ import socket
 import ssl
 import struct
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator
 
 import numpy as np
 from pydicom.dataset import Dataset
@@ -116,7 +116,7 @@ class RawAssociation:
     accepted: dict = field(default_factory=dict)
     max_pdu: int = 16384
 
-    def connect(self) -> "RawAssociation":
+    def connect(self) -> RawAssociation:
         sock = socket.create_connection((self.host, self.port), self.timeout_s,
                                         source_address=(self.source, 0) if self.source else None)
         # A message goes out as two writes (command, dataset): without this, Nagle's algorithm
@@ -125,7 +125,7 @@ class RawAssociation:
         self.sock = self.tls.wrap_socket(sock) if self.tls else sock
         return self
 
-    def associate(self) -> "RawAssociation":
+    def associate(self) -> RawAssociation:
         self.connect()
         self.send(associate_rq(self.calling, self.called, self.contexts))
         pdu_type, body = self.read_pdu()
@@ -217,7 +217,7 @@ def noise_frame(seed: int = 0, size: int = 32, sop_instance_uid: str | None = No
     return Frame(pixels=rng.integers(0, 4000, (size, size)).astype(np.uint16),
                  imager_pixel_spacing_mm=(0.3, 0.3), primary_angle_deg=-30.0,
                  secondary_angle_deg=0.0, sid_mm=1000.0, sod_mm=620.0,
-                 acquisition_datetime=dt.datetime.now(dt.timezone.utc), patient_id="P-1",
+                 acquisition_datetime=dt.datetime.now(dt.UTC), patient_id="P-1",
                  laterality="R", bits_stored=12,
                  sop_instance_uid=sop_instance_uid or generate_uid())
 

@@ -26,26 +26,21 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import TypeVar
 
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slamtka.solver.camera import Camera
-from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
-from slamtka.solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
-from slamtka.solver.imaging.distortion import Distortion
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.plate_images import (
     PhantomSet,
     plate_offsets,
     simulate_phantom_images,
     simulate_phantom_set,
 )
-from slamtka.solver.imaging.plate import PhantomSpec
-from slamtka.sim.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
-from slamtka.solver.observations import ViewObservation
 from slamtka.sim.simulate import (
     DETECTOR_FIELD_MM,
     ROT_SD_PER_LEVEL_RAD,
@@ -54,8 +49,14 @@ from slamtka.sim.simulate import (
     default_camera,
     simulate_case,
 )
+from slamtka.sim.xray import Radiograph, XRayParams, XRayScene, default_distortion, render_radiograph
+from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOptions, calibrate
+from slamtka.solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.solver.imaging.plate import PhantomSpec
+from slamtka.solver.observations import ViewObservation
 from slamtka.solver.slam import SolverConfig, solve_joint
-from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["contour_scores", "residual_distortion_px", "add_imaging_bench_parser", "run_imaging"]
 

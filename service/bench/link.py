@@ -28,7 +28,7 @@ import platform
 import tempfile
 import threading
 import time
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -243,7 +243,7 @@ def bench_latency(seconds: float, rate_hz: int) -> dict:
 def _audit(link: EncoderLink, max_age: float, tally: dict, rng: np.random.Generator) -> None:
     """One lookup of each kind; count refusals and any reading older than the maximum age."""
     now = time.monotonic()
-    now_utc = datetime.now(timezone.utc)
+    now_utc = datetime.now(UTC)
     latest = link.latest()
     tally["lookups"] += 2
     if latest is None:
@@ -386,7 +386,7 @@ def run_link_bench(args: argparse.Namespace) -> int:
             results[name] = run()
         results[name]["host"] = probe.summary()
     figures = _figures(results, args.corrupted_frames)
-    doc = {"format": "slamtka-bench-link/1", "created_utc": datetime.now(timezone.utc).isoformat(),
+    doc = {"format": "slamtka-bench-link/1", "created_utc": datetime.now(UTC).isoformat(),
            "environment": {"python": platform.python_version(), "pyserial": serial.__version__,
                            "platform": platform.platform(), "cpus": os.cpu_count()},
            "link_config": LinkConfig().to_config(), "figures": figures, **results}

@@ -23,17 +23,17 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless, generate_uid
 
-from slamtka.service.audit import AuditLog, read_audit
 from slamtka.bench.hardening import Tally, Target
+from slamtka.bench.hostile import Dropped, RawAssociation, noise_frame, wire_bytes
+from slamtka.bench.pki import client_context, make_pki
+from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.compressed import ENCODERS, NEAR_LOSSLESS_DEVIATION, compress, storescu
 from slamtka.service.config import Destination, SenderConfig
 from slamtka.service.frames import SECONDARY_CAPTURE_STORAGE, decode_frame, encode_frame
-from slamtka.bench.hostile import Dropped, RawAssociation, noise_frame, wire_bytes
 from slamtka.service.pixel_layouts import layout_cases
-from slamtka.bench.pki import client_context, make_pki
 from slamtka.service.sender import OutgoingObject, Sender
-from slamtka.sim.theatre import ResultCollector
 from slamtka.service.tls import certificate_sha256
+from slamtka.sim.theatre import ResultCollector
 
 __all__ = ["NETWORK_ITEMS", "run_network_item"]
 

@@ -30,7 +30,7 @@ OTHER_HOST = ("pacs-b.invalid", "127.0.0.9")  # whom the "elsewhere" certificate
 def _certificate(subject: str, key, issuer: str, issuer_key, ca: bool,
                  expired: bool = False, host: tuple[str, str] = ("localhost", "127.0.0.1")
                  ) -> x509.Certificate:
-    now = dt.datetime.now(dt.timezone.utc) - dt.timedelta(days=2 if expired else 0)
+    now = dt.datetime.now(dt.UTC) - dt.timedelta(days=2 if expired else 0)
     builder = (x509.CertificateBuilder().subject_name(_name(subject)).issuer_name(_name(issuer))
                .public_key(key.public_key()).serial_number(x509.random_serial_number())
                .not_valid_before(now - dt.timedelta(minutes=5))

@@ -29,7 +29,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slamtka.solver.imaging.contours import ContourError, ExtractedContours, extract_contours
+from slamtka.bench.args import names_from
+from slamtka.bench.imaging import COVERED_PX, contour_scores
+from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.operating_room import (
     NUISANCES,
     OperatingRoom,
@@ -39,15 +41,12 @@ from slamtka.sim.operating_room import (
     room_scene,
     view_angles,
 )
+from slamtka.sim.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
 from slamtka.sim.xray import XRayParams, XRayScene
+from slamtka.solver.imaging.contours import ContourError, ExtractedContours, extract_contours
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.plan import Plan
-from slamtka.sim.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
 from slamtka.solver.slam import SolverConfig, solve_joint
-
-from slamtka.bench.args import names_from
-from slamtka.bench.imaging import COVERED_PX, contour_scores
-from slamtka.sim.bone_phantom import phantom_plan
 
 __all__ = ["add_realism_bench_parser", "run_realism", "realism_case", "SHARED_DATA"]
 

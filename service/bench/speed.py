@@ -23,11 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
+from slamtka.sim.bone_phantom import phantom_plan
+from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver import kernels
 from slamtka.solver.plan import Plan
-from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.slam import SolverConfig, solve_joint
-from slamtka.sim.bone_phantom import phantom_plan
 
 
 def _timed_solve(plan: Plan, seed: int, level: int) -> dict:

@@ -28,7 +28,7 @@ import os
 import platform
 import time
 from dataclasses import replace
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 from pydicom.uid import generate_uid
@@ -140,7 +140,7 @@ def _wrong_reports(theatre: Theatre, truth_of: dict[str, tuple[tuple[int, int], 
 
 def _stalled(theatre: Theatre, template: TheatreCase) -> list[dict]:
     """Each stalled-case situation once: (situation, latency to the display, message)."""
-    long_ago = datetime.now(timezone.utc) - timedelta(hours=2)  # no encoder reading then
+    long_ago = datetime.now(UTC) - timedelta(hours=2)  # no encoder reading then
 
     def variant(**changes) -> TheatreCase:
         study = generate_uid(prefix=None)

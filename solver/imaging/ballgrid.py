@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from slamtka.solver.imaging.field import field_of_view, attenuation
+from slamtka.solver.imaging.field import attenuation, field_of_view
 
 __all__ = ["GridError", "detect_balls", "match_grid", "placements"]
 

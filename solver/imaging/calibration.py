@@ -30,10 +30,9 @@ a refusal carries it on the :class:`CalibrationError`).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
-from datetime import datetime, timezone
-
 from collections import Counter
+from dataclasses import dataclass
+from datetime import UTC, datetime
 
 import cv2
 import numpy as np
@@ -41,9 +40,9 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging import bundle
 from slamtka.solver.imaging.ballgrid import GridError, detect_balls, match_grid, placements
+from slamtka.solver.imaging.calibration_file import Calibration, CalibrationError, calibration_document
 from slamtka.solver.imaging.distortion import Distortion
 from slamtka.solver.imaging.field import FieldError, field_of_view
-from slamtka.solver.imaging.calibration_file import Calibration, CalibrationError, calibration_document
 from slamtka.solver.imaging.plate import PhantomSpec
 
 __all__ = ["CalibrationOptions", "CalibrationImage", "calibrate", "REPORT_FORMAT"]
@@ -101,7 +100,7 @@ class _Run:
 
     def __init__(self, images: list[CalibrationImage], spec: PhantomSpec, calibration_id: str):
         self.doc: dict = {"format": REPORT_FORMAT, "calibration_id": calibration_id,
-                          "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                          "created": datetime.now(UTC).isoformat(timespec="seconds"),
                           "status": "running", "refusal": None, "phantom": spec.to_json(),
                           "images": []}
         self.entries = {}

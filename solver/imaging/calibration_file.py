@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +119,7 @@ def calibration_document(camera: Camera, calibration_id: str, description: str,
                          extra: dict | None = None, field_mm: float | None = None) -> dict:
     """The versioned, checksummed calibration file content."""
     body = {"format": FORMAT, "id": calibration_id, "description": description,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "detector": {"width": camera.width, "height": camera.height,
                          "pixel_spacing_mm": None if pixel_spacing_mm is None else list(pixel_spacing_mm),
                          "field_mm": field_mm},
@@ -137,7 +137,7 @@ def assign_device(document: dict, device: dict[str, str], field_mm: float | None
     if field_mm is not None:
         detector["field_mm"] = float(field_mm)
     body.update(detector=detector, device=dict(device),
-                assigned={"at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                assigned={"at": datetime.now(UTC).isoformat(timespec="seconds"),
                           "original_sha256": document.get("sha256")})
     return {**body, "sha256": _digest(body)}
 

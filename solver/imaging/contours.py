@@ -43,9 +43,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.imaging.field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
 from slamtka.solver.imaging.response import linearised_attenuation
+from slamtka.solver.jsonfile import read_json_object
 
 __all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
            "ContourError"]

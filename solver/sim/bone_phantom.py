@@ -23,9 +23,9 @@ fibula at +x) and mirrored in x for a left leg.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Callable
 
 import numpy as np
 import trimesh

@@ -12,18 +12,17 @@ from __future__ import annotations
 
 import json
 import shutil
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 from pydicom.uid import generate_uid
 
-from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
-from slamtka.solver.imaging.plate import PhantomSpec
-from slamtka.sim.xray import default_distortion
-from slamtka.sim.simulate import DETECTOR_FIELD_MM, SOURCE_TO_DETECTOR_MM, default_camera
-
 from slamtka.service.frames import Frame, encode_frame
+from slamtka.sim.plate_images import plate_offsets, simulate_phantom_set
+from slamtka.sim.simulate import DETECTOR_FIELD_MM, SOURCE_TO_DETECTOR_MM, default_camera
+from slamtka.sim.xray import default_distortion
+from slamtka.solver.imaging.plate import PhantomSpec
 
 __all__ = ["write_calibration_set", "PLATE_ERROR_MM"]
 
@@ -46,7 +45,7 @@ def write_calibration_set(folder: Path, count: int, seed: int) -> list[Path]:
                                    specks=2, empty_frames=1)
     spacing = DETECTOR_FIELD_MM / camera.width
     study, series = generate_uid(), generate_uid()
-    start = datetime.now(timezone.utc)
+    start = datetime.now(UTC)
     paths = []
     for k, (name, image) in enumerate(zip(phantom.names, phantom.images)):
         frame = Frame(image, (spacing, spacing), sid_mm=SOURCE_TO_DETECTOR_MM,

@@ -16,24 +16,23 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 from pydicom.uid import generate_uid
 
-from slamtka.solver.imaging.calibration_file import write_calibration
+from slamtka.service.frames import Frame, encode_frame
 from slamtka.sim.operating_room import OperatingRoom, render_room, room_bodies, room_scene
-from slamtka.sim.xray import XRayParams, XRayScene, default_distortion
-from slamtka.solver.plan import Plan
 from slamtka.sim.simulate import (
     DETECTOR_FIELD_MM,
     SOURCE_TO_DETECTOR_MM,
     SOURCE_TO_ISOCENTRE_MM,
     SimulatedCase,
 )
-
-from slamtka.service.frames import Frame, encode_frame
+from slamtka.sim.xray import XRayParams, XRayScene, default_distortion
+from slamtka.solver.imaging.calibration_file import write_calibration
+from slamtka.solver.plan import Plan
 
 __all__ = ["write_case_images"]
 
@@ -55,7 +54,7 @@ def write_case_images(folder: Path, plan: Plan, case: SimulatedCase, calibration
     rng = np.random.default_rng(seed)
     spacing = DETECTOR_FIELD_MM / camera.width
     study, series = generate_uid(), generate_uid()
-    start = datetime.now(timezone.utc)
+    start = datetime.now(UTC)
     (folder / "frames").mkdir(parents=True, exist_ok=True)
     paths, truth = [], {}
     for k, (view, T, angle) in enumerate(zip(case.views, case.truth_T_cam_tibia,

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slamtka.sim.simulate import SimulatedCase, SimulationConfig, simulate_case
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.plan import Plan
-from slamtka.sim.simulate import SimulatedCase, SimulationConfig, simulate_case
 
 __all__ = ["DEGENERATE_KINDS", "DegenerateCase", "degenerate_case"]
 

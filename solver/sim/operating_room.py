@@ -37,10 +37,6 @@ import cv2
 import numpy as np
 import trimesh
 
-from slamtka.solver.camera import Camera
-from slamtka.solver.geometry import Pose, rotation_about
-from slamtka.solver.plan import Plan
-from slamtka.solver.imaging.distortion import Distortion
 from slamtka.sim.xray import (
     Body,
     Radiograph,
@@ -53,6 +49,10 @@ from slamtka.sim.xray import (
     render_bodies,
     render_radiograph,
 )
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.imaging.distortion import Distortion
+from slamtka.solver.plan import Plan
 
 __all__ = ["OperatingRoom", "RoomDraw", "RoomFrame", "NUISANCES", "room_bodies", "room_scene", "render_room",
            "expose_room", "view_angles"]

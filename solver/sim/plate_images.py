@@ -19,11 +19,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import trimesh
 
+from slamtka.sim.xray import Body, XRayParams, expose, render_bodies
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.imaging.distortion import Distortion
 from slamtka.solver.imaging.plate import PhantomSpec
-from slamtka.sim.xray import Body, XRayParams, expose, render_bodies
 
 __all__ = ["PhantomSet", "plate_offsets", "simulate_phantom_images", "simulate_phantom_set"]
 

@@ -27,7 +27,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -42,17 +42,22 @@ from pynetdicom.sop_class import (
 )
 
 from slamtka.drivers.carm_sim import MotionScript, SimulatedCArm
-from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles, initial_view_poses
-from slamtka.solver.geometry import Pose, rotation_about
-from slamtka.sim.xray import XRayParams, XRayScene, default_distortion, render_radiograph
-from slamtka.solver.plan import Plan
-from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
-
+from slamtka.drivers.kinematics import (
+    CArmKinematics,
+    JointReading,
+    PatientSetup,
+    dicom_angles,
+    initial_view_poses,
+)
 from slamtka.service.cases import case_id_of, run_id_of
 from slamtka.service.display import STATUS_SERIES
 from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.plans import PlanStore
 from slamtka.sim.bone_phantom import phantom_plan
+from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
+from slamtka.sim.xray import XRayParams, XRayScene, default_distortion, render_radiograph
+from slamtka.solver.geometry import Pose, rotation_about
+from slamtka.solver.plan import Plan
 
 __all__ = ["ResultCollector", "TheatreCase", "Theatre", "PATIENT_ID", "CARM_AE", "DISPLAY_AE"]
 
@@ -349,7 +354,7 @@ port = {display_port}
                 if self.encoders:
                     view = k if views is None else views[k]
                     time.sleep(max(0.0, self.exposure_time(view, after) - time.monotonic()))
-                frame.acquisition_datetime = datetime.now(timezone.utc) + timedelta(
+                frame.acquisition_datetime = datetime.now(UTC) + timedelta(
                     seconds=self.clock_offset_s)
             ds = encode_frame(frame)
             case.send_started.append(time.monotonic())

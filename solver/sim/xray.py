@@ -29,19 +29,19 @@ the meshes (``solver.silhouette.ContourGenerator``), in ideal and in distorted p
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 import trimesh
 
+from slamtka.sim.raster import path_lengths
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.distortion import Distortion
 from slamtka.solver.plan import Plan
 from slamtka.solver.silhouette import ContourGenerator
-from slamtka.solver.imaging.distortion import Distortion
-from slamtka.sim.raster import path_lengths
 
 __all__ = ["XRayParams", "XRayScene", "Radiograph", "render_radiograph", "render_bodies",
            "default_distortion", "Body"]
