@@ -102,7 +102,7 @@ class Retention:
             self.audit("case_archived", case_id=case_id, instances=len(files))
 
     # -- pruning ---------------------------------------------------------------------------
-    def prune(self, pending: set[str], active: set[str] = frozenset(), now: float | None = None,
+    def prune(self, pending: set[str], active: frozenset[str] | set[str] = frozenset(), now: float | None = None,
               dry_run: bool = False) -> Sweep:
         """Delete the archives and results of cases older than ``keep_days``; never a case
         with a result in the send queue, nor one still live (``active``)."""
