@@ -50,7 +50,7 @@ def test_plan_add_estimates_landmarks_then_list_show_and_find(phantom_meshes, tm
     out = capsys.readouterr().out
     assert code == 0 and "estimated from the full-length tibia" in out
     (saved,) = [p for p in plans.iterdir() if not p.name.startswith(".")]
-    assert saved.name.startswith("PAT_001_x-left-")  # never the raw Patient ID as a path
+    assert saved.name.startswith("plan-left-") and "PAT" not in saved.name  # no Patient ID in a path
     assert any((saved / "cache").iterdir())  # signed distance fields precomputed
     provenance = json.loads((saved / "provenance.json").read_text())
     assert provenance["landmarks"] == "estimated" and len(provenance["sources"]["tibia"]["sha256"]) == 64
