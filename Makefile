@@ -30,10 +30,10 @@ demo: $(STAMP)
 	$(BIN)/slamtka theatre
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "not system and not slow"
+	$(BIN)/pytest -n 2 -q -m "not system and not slow"
 
 test-system: $(STAMP)
-	$(BIN)/python -m pytest -n 2 -q -m "system and not slow"
+	$(BIN)/pytest -n 2 -q -m "system and not slow"
 
 # mypy cannot follow setuptools' package-dir mapping, so it reads the `slamtka` namespace
 # through a tree of links to the repository's folders.

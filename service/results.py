@@ -30,7 +30,7 @@ SCHEMA_VERSION = "1.0"
 
 @lru_cache(maxsize=1)
 def result_schema() -> dict:
-    return json.loads(files("service").joinpath("schemas/result.schema.json").read_text())
+    return json.loads(files("slamtka.service").joinpath("schemas/result.schema.json").read_text())
 
 
 def validate_result(doc: dict) -> None:

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from slamtka.service.cli import main
-from tests.conftest import REAL_LANDMARKS, SHARED_DATA
+from conftest import REAL_LANDMARKS, SHARED_DATA
 
 
 @pytest.mark.skipif(not (SHARED_DATA / "tibia-right.stl").exists(), reason="shared meshes absent")

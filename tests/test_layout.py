@@ -73,3 +73,14 @@ def test_each_command_registers_itself_under_its_listed_help(name):
     listed = {a.dest: a.help for a in sub._choices_actions}
     assert listed[name] == COMMANDS[name].help
     assert len(sub.choices[name]._actions) > 1  # its own options or actions, not a bare name
+
+
+def test_the_installed_package_works_away_from_the_repository(tmp_path):
+    # From a checkout's root the folders `service`, `solver` and `drivers` are importable by
+    # accident; a deployed service runs elsewhere, where only `slamtka` exists.
+    probe = ("import importlib.util\n"
+             "from slamtka.service.results import result_schema\n"
+             "assert result_schema()['type'] == 'object'\n"
+             "assert [n for n in ('service', 'solver', 'drivers') if importlib.util.find_spec(n)] == []\n")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr

@@ -9,7 +9,7 @@ import trimesh
 from slamtka.solver.meshes import MeshError, load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.sdf import SignedDistanceField
-from tests.conftest import SHARED_DATA
+from conftest import SHARED_DATA
 
 
 def test_pin_is_a_closed_trocar_of_the_right_size():

@@ -302,7 +302,8 @@ port = {display_port}
         with open(self.root / "service.log", "ab") as log:
             self.service = subprocess.Popen(
                 [sys.executable, "-m", "slamtka.service.cli", "serve", "--config", str(self.config)],
-                stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1", **self.environ})
+                stdout=log, stderr=subprocess.STDOUT, cwd=self.root,  # as deployed: not in a checkout
+                env={**os.environ, "PYTHONUNBUFFERED": "1", **self.environ})
         self._wait_for_service(60.0)
 
     def stop_service(self, kill: bool = False) -> int:
