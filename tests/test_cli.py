@@ -5,9 +5,9 @@ import subprocess
 import sys
 
 import pytest
+from conftest import REAL_LANDMARKS, SHARED_DATA
 
 from slamtka.service.cli import main
-from conftest import REAL_LANDMARKS, SHARED_DATA
 
 
 @pytest.mark.skipif(not (SHARED_DATA / "tibia-right.stl").exists(), reason="shared meshes absent")

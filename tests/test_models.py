@@ -5,11 +5,11 @@ import igl
 import numpy as np
 import pytest
 import trimesh
+from conftest import SHARED_DATA
 
 from slamtka.solver.meshes import MeshError, load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.sdf import SignedDistanceField
-from conftest import SHARED_DATA
 
 
 def test_pin_is_a_closed_trocar_of_the_right_size():
