@@ -143,7 +143,21 @@ class Sender:
                 jobs.append(SendJob(**json.loads(path.read_text())))
             except FileNotFoundError:
                 continue
+            except (ValueError, TypeError) as exc:  # damaged (a disk error, an edit): named, set aside
+                self._set_aside(path, f"unreadable send job: {exc}")
         return sorted(jobs, key=lambda j: (j.created, j.id))
+
+    def _set_aside(self, path: Path, reason: str) -> None:
+        """Move a damaged job file to ``queue/damaged/`` (audited), so that one bad file
+        neither stops the queue nor the status board that lists it."""
+        moved_to = self.pending_dir.parent / "damaged" / f"{path.parent.name}-{path.name}"
+        moved_to.parent.mkdir(exist_ok=True)
+        try:
+            path.replace(moved_to)
+        except FileNotFoundError:  # the other lister (sender or status board) was first
+            return
+        log.error("send queue: %s set aside to %s: %s", path, moved_to, reason)
+        self.audit.record("quarantined", file=str(path), reason=reason, moved_to=str(moved_to))
 
     def pending(self) -> list[SendJob]:
         return self._jobs(self.pending_dir)

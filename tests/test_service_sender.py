@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 from pydicom.uid import generate_uid
 from service_testing import free_port, small_frame
@@ -170,3 +171,16 @@ def test_a_newer_run_of_a_case_replaces_its_undelivered_older_one(tmp_path):
     assert {e["sop_instance_uid"] for e in superseded} == {o.sop_instance_uid for o in older}
     assert all(e["by_run_id"] == "run-2" for e in superseded)
     audit.close()
+
+
+def test_a_damaged_job_file_is_set_aside_by_name_and_the_queue_goes_on(tmp_path):
+    sender, audit = _sender(tmp_path, 9)
+    pending = tmp_path / "queue" / "pending"
+    (pending / "torn.json").write_text('{"id": "x", "destination": ')
+    (pending / "partial.json").write_text('{"case_id": "case-1"}')
+    assert sender.pending() == [] and sender.pending() == []
+    damaged = sorted(p.name for p in (tmp_path / "queue" / "damaged").iterdir())
+    assert damaged == ["pending-partial.json", "pending-torn.json"]
+    audit.close()
+    aside = [e for e in read_audit(tmp_path / "audit.jsonl") if e["event"] == "quarantined"]
+    assert sorted(Path(e["file"]).name for e in aside) == ["partial.json", "torn.json"]
