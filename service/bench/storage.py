@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from slamtka.bench.faults import CArmClient, SmallCase, running_theatre, small_case
@@ -359,6 +359,7 @@ def _timed_start(theatre) -> float:
 def retention(root: Path, count: int) -> Tally:
     from slamtka.service.cases import case_id_of
     from slamtka.service.frames import encode_frame
+    from slamtka.service.sender import SendJob
     from slamtka.service.spool import Spool
 
     tally = Tally()
@@ -380,10 +381,9 @@ def retention(root: Path, count: int) -> Tally:
             if kind == "queued":
                 job = data / "queue" / "pending" / f"job-{k}.json"
                 job.parent.mkdir(parents=True, exist_ok=True)
-                job.write_text(json.dumps({  # held back: due in a year
-                    "id": f"job-{k}", "destination": "or-display", "path": str(result), "kind": "sr",
-                    "sop_class_uid": "1.2.840.10008.5.1.4.1.1.88.34", "sop_instance_uid": f"2.25.{k}",
-                    "case_id": case_id, "run_id": "run-1", "created": now, "next_attempt": now + 365 * day}))
+                held = SendJob(f"job-{k}", "or-display", str(result), "sr", "1.2.840.10008.5.1.4.1.1.88.34",
+                               f"2.25.{k}", case_id, "run-1", now, next_attempt=now + 365 * day)
+                job.write_text(json.dumps(asdict(held)))  # held back: due in a year
             age = 0.0 if kind == "recent" else 40 * day
             for path in (entry.path, result):
                 os.utime(path, (now - age, now - age))
