@@ -16,7 +16,9 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import threading
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 from pydicom.dataset import Dataset
@@ -142,27 +144,65 @@ class CalibrationStore:
 
 
 class CalibrationSet:
-    """What the service measures with: the installed calibrations and the default."""
+    """What the service measures with: the installed calibrations and the default.
+
+    Loaded from a folder, the set follows it: a calibration installed, replaced or removed
+    while the service runs is used from the next frame on, without a restart. A folder that
+    no longer reads (a damaged file) leaves the set as it was, and ``on_change`` is told.
+    """
 
     def __init__(self, installed: list[Calibration], default: Calibration | None,
-                 match: str = "device_serial_number"):
+                 match: str = "device_serial_number", folder: Path | None = None,
+                 on_change: Callable[[str, dict], None] | None = None):
         if match not in DEVICE_KEYS:
             raise ValueError(f"calibration match {match!r} is not one of {sorted(DEVICE_KEYS)}")
         self.installed, self.default, self.match = installed, default, match
+        self.folder, self.on_change = folder, on_change
+        self._seen = _folder_state(folder)
+        self._lock = threading.Lock()
 
     @classmethod
-    def load(cls, folder: Path, default: Path | None, match: str) -> CalibrationSet:
+    def load(cls, folder: Path, default: Path | None, match: str,
+             on_change: Callable[[str, dict], None] | None = None) -> CalibrationSet:
         """Read and verify every calibration (at start-up); none at all is refused."""
         installed = CalibrationStore(folder).installed()
         calibration = None if default is None else load_calibration(default)
         if not installed and calibration is None:
             raise CalibrationError(f"no calibration: set carm.calibration, or install one per C-arm "
                                    f"into {folder} with `slamtka calibration install`")
-        return cls(installed, calibration, match)
+        return cls(installed, calibration, match, folder, on_change)
+
+    def refresh(self) -> None:
+        """Re-read the folder if a file in it was added, changed or removed since last read."""
+        if self.folder is None:
+            return
+        with self._lock:
+            state = _folder_state(self.folder)
+            if state == self._seen:
+                return
+            self._seen = state
+            before = {c.calibration_id: c.sha256 for c in self.installed}
+            try:
+                installed = CalibrationStore(self.folder).installed()
+            except (CalibrationError, OSError, ValueError) as exc:
+                self._tell("calibrations_unreadable", {
+                    "folder": str(self.folder), "error": str(exc),
+                    "kept": sorted(before)})
+                return
+            self.installed = installed
+            after = {c.calibration_id: c.sha256 for c in installed}
+            self._tell("calibrations_reloaded", {
+                "added": sorted(set(after) - set(before)), "removed": sorted(set(before) - set(after)),
+                "replaced": sorted(i for i in set(after) & set(before) if after[i] != before[i])})
+
+    def _tell(self, event: str, fields: dict) -> None:
+        if self.on_change is not None:
+            self.on_change(event, fields)
 
     def select(self, header: Dataset, frame) -> tuple[Calibration | None, str | None]:
         """The calibration for a frame (``frame``: width, height, pixel spacing; ``header``:
         its DICOM attributes), or None and why there is none."""
+        self.refresh()
         label = DEVICE_KEYS[self.match][0]
         identity = device_identity(header).get(self.match)
         mine = [c for c in self.installed if identity and c.device.get(self.match) == identity]
@@ -188,11 +228,26 @@ class CalibrationSet:
 
     def describe(self) -> dict:
         """For the status board."""
+        self.refresh()
         return {"match": self.match,
                 "default": None if self.default is None else {
                     "id": self.default.calibration_id, "sha256": self.default.sha256},
                 "installed": [{"id": c.calibration_id, "sha256": c.sha256, "device": c.device,
                                "detector": _detector(c)} for c in self.installed]}
+
+
+def _folder_state(folder: Path | None) -> tuple[tuple[str, int, int], ...]:
+    """What says the folder's calibrations changed: each file's name, size and change time."""
+    if folder is None or not folder.is_dir():
+        return ()
+    state = []
+    for path in folder.glob("*.json"):
+        try:
+            st = path.stat()
+        except FileNotFoundError:  # removed while looked at: the next look sees it gone
+            continue
+        state.append((path.name, st.st_size, st.st_mtime_ns))
+    return tuple(sorted(state))
 
 
 def choose_for_run(selected: list[tuple[Calibration | None, str | None]]) -> Calibration | None:

@@ -103,7 +103,8 @@ class Service:
         from slamtka.service.pipeline import Pipeline
 
         self.calibrations = CalibrationSet.load(config.data_dir / "calibrations", config.carm.calibration,
-                                                config.carm.calibration_match)
+                                                config.carm.calibration_match,
+                                                on_change=lambda event, fields: self.audit.record(event, **fields))
         kinematics = CArmKinematics.from_config(config.carm.kinematics)
         self.link = None
         self.link_watch = None

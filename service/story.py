@@ -47,6 +47,10 @@ _STEPS: dict[str, tuple[int, Callable[[dict], str]]] = {
     "failed": (logging.ERROR, lambda e: f"{_who(e)}: failed: {e.get('error')}"),
     "status_sent": (logging.INFO, lambda e: f"{_who(e)}: display told: {e.get('message')}"),
     "sent": (logging.INFO, lambda e: f"{_who(e)}: {e.get('kind')} sent to {e.get('destination')}"),
+    "calibrations_reloaded": (logging.INFO, lambda e: f"calibrations changed: added {e.get('added')}, "
+                                                      f"replaced {e.get('replaced')}, removed {e.get('removed')}"),
+    "calibrations_unreadable": (logging.ERROR, lambda e: f"calibrations folder unreadable, still using "
+                                                         f"{e.get('kept')}: {e.get('error')}"),
 }
 
 

@@ -16,7 +16,7 @@ from service_testing import free_port, small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics
 from slamtka.service.audit import AuditLog
-from slamtka.service.calibrations import CalibrationSet, device_identity
+from slamtka.service.calibrations import CalibrationSet, CalibrationStore, device_identity
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.cli import main
 from slamtka.service.config import DicomConfig
@@ -253,3 +253,74 @@ def test_a_run_leaves_out_a_frame_of_a_c_arm_without_calibration(tmp_path):
     assert [s["problem"] for s in doc["sources"]] == [problem, problem]
     assert f"view1: {problem}" in doc["reasons"]
     assert pydicom.dcmread(doc["outputs"]["folder"] + "/sr.dcm").Modality == "SR"
+
+
+def test_a_running_service_picks_up_an_installed_calibration_without_restart(tmp_path):
+    """``calibration install`` while the service runs: the next frame is measured with it; a
+    damaged file keeps the calibrations the service had, and says so."""
+    made = tmp_path / "made"
+    made.mkdir()
+    folder = tmp_path / "calibrations"
+    or3 = _calibration(made, "or3", {"device_serial_number": "OR3"})
+    store_path = made / "or3.json"
+
+    CalibrationStore(folder).install(store_path, "device_serial_number")
+    told: list[tuple[str, dict]] = []
+    live = CalibrationSet.load(folder, None, "device_serial_number", on_change=lambda e, f: told.append((e, f)))
+    frame = small_frame()
+    ds = encode_frame(frame, device_serial_number="OR7")
+    assert live.select(ds, frame)[0] is None
+    _calibration(made, "or7", {"device_serial_number": "OR7"})
+    CalibrationStore(folder).install(made / "or7.json", "device_serial_number")
+    chosen, problem = live.select(ds, frame)
+    assert problem is None and chosen.calibration_id == "or7"
+    assert told == [("calibrations_reloaded", {"added": ["or7"], "removed": [], "replaced": []})]
+    (folder / "broken.json").write_text("{ not json")
+    chosen, problem = live.select(ds, frame)
+    assert chosen.calibration_id == "or7" and told[-1][0] == "calibrations_unreadable"
+    assert "broken.json" in told[-1][1]["error"] and told[-1][1]["kept"] == ["or3", "or7"]
+    (folder / "broken.json").unlink()
+    (folder / "or7.json").unlink()
+    assert live.select(ds, frame)[0] is None
+    assert told[-1] == ("calibrations_reloaded", {"added": [], "removed": ["or7"], "replaced": []})
+    assert [c.calibration_id for c in live.installed] == [or3.calibration_id]
+
+
+def test_every_screening_refusal_names_the_frame_and_why(real_set):
+    _, _, images = real_set
+    small = CalibrationImage("small", images[0].pixels[:512, :512].copy(), SPACING, 1000.0)
+    coarse = CalibrationImage("coarse", images[1].pixels.copy(), (0.4, 0.4), 1000.0)
+    _, report = calibrate(images + [small, coarse])
+    reasons = {e["image"]: e["reason"] for e in report["images"] if not e["used"]}
+    assert reasons["small"].startswith("different size 512x512 px")
+    assert reasons["coarse"].startswith("different pixel spacing [0.4, 0.4] mm")
+
+
+def test_a_set_of_flat_plates_is_refused_with_the_largest_tilt():
+    camera = default_camera()
+    flat = simulate_phantom_set(camera, default_distortion(camera), PhantomSpec(), 8,
+                                np.random.default_rng(5), max_tilt_deg=8.0)
+    with pytest.raises(CalibrationError, match=r"all plates are nearly fronto-parallel \(largest tilt "
+                                               r"\d\.\d deg, need 10.0\); tilt the phantom") as refused:
+        calibrate([CalibrationImage(n, im, SPACING, 1000.0) for n, im in zip(flat.names, flat.images)])
+    assert all(e["balls_found"] and e["reason"] is None for e in refused.value.report["images"])
+
+
+def test_install_refuses_an_unsafe_id_and_a_second_calibration_of_the_same_detector(tmp_path):
+    made = tmp_path / "made"
+    made.mkdir()
+    store = CalibrationStore(tmp_path / "calibrations")
+    _calibration(made, "or3-a", {"device_serial_number": "OR3"})
+    _calibration(made, "or3-b", {"device_serial_number": "OR3"})
+    store.install(made / "or3-a.json", "device_serial_number")
+    with pytest.raises(ValueError, match=r"calibration or3-a is installed for the same C-arm "
+                                         r"\(Device Serial Number 'OR3'\) and detector; give --replace"):
+        store.install(made / "or3-b.json", "device_serial_number")
+    store.install(made / "or3-b.json", "device_serial_number", replace=True)
+    assert [c.calibration_id for c in store.installed()] == ["or3-b"]
+    bad = _calibration(made, "bad", {"device_serial_number": "OR9"})
+    doc = bad.document()
+    doc["calibration_id"] = "../etc/passwd"
+    (made / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises((ValueError, CalibrationError)):
+        store.install(made / "bad.json", "device_serial_number")

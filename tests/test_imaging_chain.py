@@ -57,6 +57,12 @@ def test_distortion_inverse_is_exact_and_parameters_are_checked():
     assert Distortion.from_json(dist.to_json()) == dist
     with pytest.raises(ValueError, match="folds"):
         Distortion(0, 0, 100.0, k1=-0.5)
+    # A calibration's trial step may fold the map: it must fit badly there, not fail.
+    folded = np.array([-0.08, -0.08, 0.0, 0.0])
+    with pytest.raises(ValueError, match="folds"):
+        dist.with_params(folded)
+    assert np.all(np.isfinite(dist.distort_with(folded, uv)))
+    assert np.array_equal(dist.distort_with(dist.params, uv), dist.distort(uv))
     with pytest.raises(ValueError, match="model"):
         Distortion.from_json({"model": "brown"})
 

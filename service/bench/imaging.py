@@ -8,9 +8,9 @@
 - calibration on real-world sets (plate error 0.1-0.3 mm, specks, missing balls, an empty
   frame, a duplicate): share of the frames showing the grid that were used, whether the
   empty frame and the duplicate were set aside, focal length error, principal point error
-  where the set determines it, final RMS over the noise floor (both over the frames used in
-  both: the floor is the RMS of the same frames, same poses and noise, rendered with a
-  perfect plate);
+  where the set determines it, final RMS over the noise floor (over the frames used in both:
+  the floor is the RMS of the same frames, same poses and noise, of a perfect plate
+  calibrated without refining the plate, scaled for the plate's extra parameters);
 - contours: distances of extracted bone edge points to the true outline (median, p95, px),
   share of the visible true outline within 2 px of an extracted point (coverage; visible:
   inside the field margin and outside the pins' shadows), pins found and correctly
@@ -27,6 +27,7 @@ import argparse
 import json
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TypeVar
 
@@ -146,18 +147,34 @@ def _calibration_study(sets: int, images: int, seed: int) -> dict:
 
 def _shows_grid(phantom: PhantomSet, name: str, camera: Camera, distortion: Distortion,
                 spec: PhantomSpec, min_balls: int) -> bool:
-    """Whether a frame shows enough balls of the plate, clear of the field's rim, to be used."""
-    plate = phantom.plate_mm[~np.isnan(phantom.plate_mm[:, 0])]
+    """Whether a frame shows enough balls of the plate, clear of the field's rim and of the
+    clamp's shadow, to be used."""
+    seen = ~np.isnan(phantom.plate_mm[:, 0])
+    seen[phantom.under_clamp.get(name, [])] = False
+    plate = phantom.plate_mm[seen]
     uv = distortion.distort(camera.project(phantom.poses[name].apply(plate)))
     ball_px = spec.ball_diameter_mm * camera.fx / phantom.poses[name].t[2]
     return int(camera.in_field(uv, ball_px + 3.0).sum()) >= min_balls
 
 
-def _rms_over(report: dict, other: dict) -> float:
-    """RMS (px) of a calibration's balls in the frames that ``other`` used too."""
-    theirs = {e["image"] for e in other["images"] if e["used"]}
-    mine = [e for e in report["images"] if e["used"] and e["image"] in theirs]
-    return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / sum(e["balls_used"] for e in mine)))
+def _noise_floor(report: dict, twin: dict) -> tuple[float, float]:
+    """The calibration's RMS (px) and its noise floor, over the frames both runs used.
+
+    ``twin``: the report of the same frames (same poses, noise drawn alike) of a perfect plate,
+    calibrated without refining the plate: what the camera model leaves of detection noise.
+    The floor is its RMS scaled by sqrt((2n - p) / (2n - p_twin)) for the plate's extra
+    parameters, which take up part of the noise in the real run's fit."""
+    def over_common(doc: dict, other: dict) -> tuple[float, int]:
+        theirs = {e["image"] for e in other["images"] if e["used"]}
+        mine = [e for e in doc["images"] if e["used"] and e["image"] in theirs]
+        balls = sum(e["balls_used"] for e in mine)
+        return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / balls)), balls
+
+    rms, _ = over_common(report, twin)
+    floor, _ = over_common(twin, report)
+    dof_real = 2 * report["observations"] - report["parameters"]
+    dof_twin = 2 * twin["observations"] - twin["parameters"]
+    return rms, floor * float(np.sqrt(dof_real / dof_twin))
 
 
 def _real_world_study(sets: int, images: int, seed: int) -> dict:
@@ -175,17 +192,15 @@ def _real_world_study(sets: int, images: int, seed: int) -> dict:
         missing = tuple(int(i) for i in rng.choice(spec.rows * spec.cols, int(rng.integers(1, 3)), replace=False))
         offsets = plate_offsets(spec, plate_error, rng)
         state = rng.bit_generator.state
-        sets_made = {}
-        for kind, plate in (("real", offsets), ("perfect", None)):
+        runs = {}
+        for kind, plate, how in (("real", offsets, options), ("twin", None, replace(options, refine_plate=False))):
             rng.bit_generator.state = state  # the same poses and noise, with and without the error
             phantom = simulate_phantom_set(true, distortion, spec, images, rng, plate, missing_balls=missing,
                                            specks=2, empty_frames=1, duplicates=1)
-            sets_made[kind] = phantom, calibrate([CalibrationImage(n, image, (spacing, spacing), 1000.0)
-                                                  for n, image in zip(phantom.names, phantom.images)],
-                                                 spec, options)
-        phantom, (calibration, report) = sets_made["real"]
-        # The noise floor: the same frames (used in both) with a perfect plate.
-        rms, floor = (_rms_over(sets_made[kind][1][1], sets_made["perfect"][1][1]) for kind in ("real", "perfect"))
+            runs[kind] = phantom, calibrate([CalibrationImage(n, image, (spacing, spacing), 1000.0)
+                                             for n, image in zip(phantom.names, phantom.images)], spec, how)
+        phantom, (calibration, report) = runs["real"]
+        rms, floor = _noise_floor(report, runs["twin"][1][1])
         c = calibration.camera
         entries = {e["image"]: e for e in report["images"]}
         showing = [n for n in phantom.poses if _shows_grid(phantom, n, true, distortion, spec, options.min_balls)]
@@ -200,6 +215,7 @@ def _real_world_study(sets: int, images: int, seed: int) -> dict:
             "focal_error_pct": 100.0 * abs(c.fx / true.fx - 1.0),
             "principal_point_error_px": None if held else float(np.hypot(c.cx - true.cx, c.cy - true.cy)),
             "principal_point_held": held,
+            "not_used_showing_grid": {n: entries[n]["reason"] for n in showing if not entries[n]["used"]},
             "rms_px": report["rms_px"], "rms_common_frames_px": rms, "noise_floor_px": floor,
             "rms_over_floor": rms / floor})
     estimable = [r["principal_point_error_px"] for r in rows if r["principal_point_error_px"] is not None]
@@ -271,8 +287,10 @@ def run_imaging(args: argparse.Namespace) -> int:
                      "pins_found_labelled_pct": 100.0 * float(np.mean(pins_ok)),
                      "extraction_median_s": float(np.median(extract_s)), "extraction_max_s": float(np.max(extract_s)),
                      "extraction_cpu_median_s": float(np.median(extract_cpu_s))},
-        "calibration": _calibration_study(args.calibration_sets, args.calibration_images, args.seed),
-        "calibration_real_world": _real_world_study(args.real_world_sets, args.calibration_images, args.seed),
+        "calibration": (_calibration_study(args.calibration_sets, args.calibration_images, args.seed)
+                        if args.calibration_sets else None),
+        "calibration_real_world": (_real_world_study(args.real_world_sets, args.calibration_images, args.seed)
+                                   if args.real_world_sets else None),
         "end_to_end": {str(level): {
             "rot_sd_rad": ROT_SD_PER_LEVEL_RAD * level, "trans_sd_mm": TRANS_SD_PER_LEVEL_MM * level,
             "cases": args.cases, "measured": len(r["ctr_abs_deg"]),
@@ -289,28 +307,33 @@ def run_imaging(args: argparse.Namespace) -> int:
 
 def _summary(r: dict) -> str:
     rd, c, cal, real = r["rendering"], r["contours"], r["calibration"], r["calibration_real_world"]
-    pp = real["max_principal_point_error_px"]
     lines = [
         f"rendering: median {rd['median_s']:.2f} s, max {rd['max_s']:.2f} s per 1024x1024 frame "
         f"(CPU median {rd['cpu_median_s']:.2f} s; first frame {rd['first_s']:.2f} s incl. distortion maps), "
         f"{rd['frames']} frames",
-        f"calibration: {len(cal['sets'])} sets x {cal['images_per_set']} images: focal error max "
-        f"{cal['max_focal_error_pct']:.3f}%, principal point error max {cal['max_principal_point_error_px']:.2f} px, "
-        f"residual distortion max {cal['max_residual_distortion_rms_px']:.3f} px RMS, grid found min "
-        f"{cal['min_grid_found_pct']:.0f}%",
-        f"calibration, real-world sets: {len(real['sets'])} sets x {real['images_per_set']} images (+ an empty "
-        f"frame and a duplicate; plate error 0.1-0.3 mm, specks, missing balls): grid used in "
-        f"{real['min_grid_used_pct']:.0f}% (min) of the frames showing it, empty and duplicate set aside: "
-        f"{'yes' if real['empty_and_duplicate_set_aside'] else 'NO'}, focal error max "
-        f"{real['max_focal_error_pct']:.3f}%, principal point error max "
-        f"{'n/a' if pp is None else f'{pp:.2f} px'} ({real['principal_point_held_sets']} sets held it), "
-        f"final RMS / noise floor max {real['max_rms_over_floor']:.2f}",
         f"contours: {c['frames']} frames: bone edge distance median {c['median_px']:.2f} px, p95 "
         f"{c['p95_px']:.2f} px, coverage median {100 * c['coverage_median']:.1f}% (min "
         f"{100 * c['coverage_min']:.1f}%), pins found and labelled {c['pins_found_labelled_pct']:.0f}%, "
         f"extraction median {c['extraction_median_s']:.2f} s (max {c['extraction_max_s']:.2f} s, CPU median "
         f"{c['extraction_cpu_median_s']:.2f} s)",
     ]
+    if cal is not None:
+        lines.append(
+            f"calibration: {len(cal['sets'])} sets x {cal['images_per_set']} images: focal error max "
+            f"{cal['max_focal_error_pct']:.3f}%, principal point error max {cal['max_principal_point_error_px']:.2f} px, "
+            f"residual distortion max {cal['max_residual_distortion_rms_px']:.3f} px RMS, grid found min "
+            f"{cal['min_grid_found_pct']:.0f}%")
+    if real is not None:
+        pp = real["max_principal_point_error_px"]
+        lines.append(
+            f"calibration, real-world sets: {len(real['sets'])} sets x {real['images_per_set']} images (+ an empty "
+            f"frame and a duplicate; plate error 0.1-0.3 mm, specks, missing balls): grid used in "
+            f"{real['min_grid_used_pct']:.0f}% (min) of the frames showing it, empty and duplicate set aside: "
+            f"{'yes' if real['empty_and_duplicate_set_aside'] else 'NO'}, focal error max "
+            f"{real['max_focal_error_pct']:.3f}%, principal point error max "
+            f"{'n/a' if pp is None else f'{pp:.2f} px'} ({real['principal_point_held_sets']} sets held it), "
+            f"final RMS / noise floor max {real['max_rms_over_floor']:.2f}")
+
     def fmt(x: float | None) -> str:
         return "n/a" if x is None else f"{x:.3f}"
 

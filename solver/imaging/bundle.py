@@ -105,7 +105,7 @@ class Bundle:
         R, t = self.poses(x)
         p = np.einsum("mij,mj->mi", R[frame], self.plate(x)[ball]) + t[frame]
         uv = np.column_stack([f * p[:, 0] / p[:, 2] + cx, f * self.aspect * p[:, 1] / p[:, 2] + cy])
-        return self.base.with_params(x[3:7]).distort(uv)
+        return self.base.distort_with(x[3:7], uv)
 
     def residuals(self, x: np.ndarray, obs: Observations) -> np.ndarray:
         a = obs.active

@@ -36,6 +36,7 @@ from datetime import UTC, datetime
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging import bundle
@@ -52,6 +53,7 @@ _PLACE_SIGMAS = 3.0  # a ball further off a placement's fit (in noise SDs) count
 _MIN_PLACE_CAP_PX = 0.05
 _RELABEL_ROUNDS = 3
 _RAY_PRIOR = 1e-3  # pull of the grid on a ball triangulated from rays (per ray: 1)
+_REASSOCIATE_PX = 2.0  # a blob this close to a ball's projection is that ball
 
 
 @dataclass(frozen=True)
@@ -303,6 +305,43 @@ class _Estimator:
             placed.append(frames[k])
             self.plate_x = self._offsets(placed)
 
+    def reassociate(self, frame: _Frame) -> bool:
+        """Name a misfitting frame's balls afresh from the camera fitted to the others.
+
+        A lattice matched wrongly in part (a steeply tilted plate at the field's rim, a speck
+        taken into it) gives balls wrong names, which no placement undoes. The balls whose
+        names agree still give the pose (RANSAC over each placement); every blob is then the
+        ball whose projection it lies on. Whether at least ``min_balls`` balls were named."""
+        K, distortion = self._camera()
+        plate = self._plate()
+        ideal = distortion.undistort(frame.uv).astype(np.float64)
+        best: tuple[int, np.ndarray, np.ndarray] | None = None
+        for ball, _, _ in placements(frame.grid, self.spec.rows, self.spec.cols):
+            on = ball >= 0
+            if on.sum() < 6:
+                continue
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(plate[ball[on]], ideal[on], K, None,
+                                                         reprojectionError=_REASSOCIATE_PX,
+                                                         iterationsCount=100)
+            if not ok or inliers is None or len(inliers) < 6 or tvec[2, 0] <= 0:
+                continue
+            projected = cv2.projectPoints(plate, rvec, tvec, K, None)[0].reshape(-1, 2)
+            distance, nearest = cKDTree(projected).query(ideal)
+            named = np.where(distance < _REASSOCIATE_PX, nearest, -1)
+            # Two blobs on one ball (a speck beside it): the nearer is the ball.
+            order = np.argsort(distance)
+            first = np.zeros(len(named), bool)
+            first[order[np.unique(named[order], return_index=True)[1]]] = True
+            named = np.where(first, named, -1)
+            count = int(np.sum(named >= 0))
+            if best is None or count > best[0]:
+                best = count, named, np.concatenate([rvec.ravel(), tvec.ravel()])
+        if best is None or best[0] < self.options.min_balls:
+            return False
+        frame.ball, frame.pose = best[1], best[2]
+        frame.active = frame.ball >= 0
+        return True
+
     def relabel(self, frames: list[_Frame]) -> bool:
         """Check every frame's placement against the refined plate; whether any changed."""
         changed = False
@@ -350,19 +389,25 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
     if largest < options.min_max_tilt_deg:
         raise run.refuse(f"all plates are nearly fronto-parallel (largest tilt {largest:.1f} deg, "
                          f"need {options.min_max_tilt_deg}); tilt the phantom")
-    frames, (m, x, result, obs) = _estimate(frames, estimator, options, run)
-    sigmas = _sigmas(result, obs)
-    pp_sigma = float(max(sigmas[1], sigmas[2]))
-    held = pp_sigma > options.max_principal_sigma_px
-    if held:
-        m, x, result, obs = estimator.fit(frames, options.refine_plate, hold_principal=True, robust=False)
-        sigmas = _sigmas(result, obs, held=True)
+    try:
+        frames, (m, x, result, obs) = _estimate(frames, estimator, options, run)
+        sigmas = _sigmas(result, obs)
+        pp_sigma = float(max(sigmas[1], sigmas[2]))
+        held = pp_sigma > options.max_principal_sigma_px
+        if held:
+            m, x, result, obs = estimator.fit(frames, options.refine_plate, hold_principal=True, robust=False)
+            sigmas = _sigmas(result, obs, held=True)
+        distortion = base.with_params(x[3:7])
+    except ValueError as exc:  # Distortion refuses a map that folds the image
+        raise run.refuse(f"the fitted distortion is not physical ({exc}): the frames do not determine "
+                         "it; add frames with the plate out to the field's rim") from None
     _fill_report(run, frames, m, x, obs, spec)
     rms = float(np.sqrt(np.mean(bundle.ball_residuals(m, x, obs)[obs.active] ** 2)))
     f, cx, cy = (float(v) for v in x[:3])
     names = ("f_px", "cx_px", "cy_px", "k1", "k2", "t1_rad", "t2_rad")
     run.doc.update(
         rms_px=rms, used=len(frames), observations=int(obs.active.sum()),
+        parameters=int(len(x) - 2 * held),
         intrinsics={n: {"value": float(v), "sd": float(s)} for n, v, s in zip(names, x[:7], sigmas)},
         principal_point={"held_at_field_centre": held, "sigma_px": pp_sigma,
                          "why": (f"the set does not determine it (standard error {pp_sigma:.1f} px > "
@@ -380,7 +425,6 @@ def calibrate(images: list[CalibrationImage], spec: PhantomSpec = PhantomSpec(),
                                                         for e in worst))
     run.doc["status"] = "calibrated"
     camera = Camera(f, f * aspect, cx, cy, width, height, radius)
-    distortion = base.with_params(x[3:7])
     fields = {f.image.field_mm for f in frames}
     doc = calibration_document(camera, calibration_id, description or "C-arm calibration from phantom",
                                distortion, spacing, _file_extra(run.doc, spec, device),
@@ -410,6 +454,7 @@ def _estimate(frames: list[_Frame], estimator: _Estimator, options: CalibrationO
     """The robust fit (plate as perfect, then the plate's own error with one physical
     labelling), repeated without the frames that do not fit the others; returns the frames
     used and the final (model, parameters, scipy result, observations)."""
+    reassociated: set[str] = set()
     while True:
         estimator.fit(frames, plate=False)
         if options.refine_plate:
@@ -429,6 +474,11 @@ def _estimate(frames: list[_Frame], estimator: _Estimator, options: CalibrationO
                    if e > limit or off[k] > options.max_outlier_share * on_plate[k].sum()]
         if not misfits or len(frames) - len(misfits) < options.min_images:
             return frames, (m, x, result, obs)
+        # Once per frame: its balls named afresh from the others' camera, and the fit again.
+        retry = [k for k in misfits if frames[k].image.name not in reassociated]
+        reassociated.update(frames[k].image.name for k in retry)
+        if sum([estimator.reassociate(frames[k]) for k in retry]):
+            continue
         for k in misfits:
             run.set_aside(frames[k].image.name, f"does not fit the other images ({off[k]} of "
                           f"{on_plate[k].sum()} balls off the fit, RMS "
@@ -483,7 +533,7 @@ def _outlier(ball: int, uv: np.ndarray, residual: float, spec: PhantomSpec) -> d
     at = [round(float(u), 1) for u in uv]
     if ball < 0:
         return {"ball": None, "at_px": at, "residual_px": None,
-                "why": "continues the grid beyond the plate (a speck, not a ball)"}
+                "why": "on no ball of the plate (a speck, or the grid continued beyond the plate)"}
     return {"ball": [int(ball % spec.cols), int(ball // spec.cols)], "at_px": at,
             "residual_px": round(float(residual), 2), "why": "far off the fit"}
 

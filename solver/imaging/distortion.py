@@ -85,10 +85,15 @@ class Distortion:
 
     def distort(self, uv: np.ndarray) -> np.ndarray:
         """Observed (distorted) pixel positions (N, 2) of ideal pinhole positions (N, 2)."""
+        return self.distort_with(self.params, uv)
+
+    def distort_with(self, params: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """:meth:`distort` with other parameters (k1, k2, t1, t2), not checked: a fit's trial
+        step may fold the map, and must be seen to fit badly rather than fail."""
+        k1, k2, t1, t2 = params
         r, theta = self._polar(uv)
         rho2 = (r / self.radius) ** 2
-        return self._cartesian(r * (1.0 + self.k1 * rho2 + self.k2 * rho2**2),
-                               theta + self.t1 * rho2 + self.t2 * rho2**2)
+        return self._cartesian(r * (1.0 + k1 * rho2 + k2 * rho2**2), theta + t1 * rho2 + t2 * rho2**2)
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Ideal pinhole positions (N, 2) of observed (distorted) pixel positions (N, 2)."""

@@ -54,6 +54,18 @@ class PhantomSet:
     plate_mm: np.ndarray  # (rows*cols, 3) true ball centres in the plate frame; NaN: missing
     poses: dict[str, Pose] = field(default_factory=dict)  # T_cam_plate of frames showing it
     notes: dict[str, str] = field(default_factory=dict)  # what is special about a frame
+    under_clamp: dict[str, np.ndarray] = field(default_factory=dict)  # balls (indices) the clamp hides
+
+
+def _under_shadow(shadow: np.ndarray, centres_px: np.ndarray, radius_px: float) -> np.ndarray:
+    """Which balls (projected ``centres_px``, N x 2) a shadow (line integral) touches: any of
+    a ball's centre and four rim points lies in it."""
+    ring = np.array([[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]) * radius_px
+    points = np.rint(centres_px[:, None, :] + ring[None]).astype(np.int64)
+    h, w = shadow.shape
+    inside = (points[..., 0] >= 0) & (points[..., 0] < w) & (points[..., 1] >= 0) & (points[..., 1] < h)
+    values = shadow[np.clip(points[..., 1], 0, h - 1), np.clip(points[..., 0], 0, w - 1)]
+    return np.any(inside & (values > 0), axis=1)
 
 
 def _add_speck(line_integral: np.ndarray, centre_uv: np.ndarray, radius_px: float) -> None:
@@ -109,13 +121,18 @@ def simulate_phantom_set(camera: Camera, distortion: Distortion, spec: PhantomSp
         pose = Pose(R, t)
         line_integral = render_bodies([(b, pose) for b in bodies[clamp]], camera,
                                       np.zeros(2), camera.width, camera.height)
+        name = f"img{k:02d}"
+        if clamp:
+            shadow = render_bodies([(bodies[True][-1], pose)], camera, np.zeros(2), camera.width, camera.height)
+            hidden = _under_shadow(shadow, camera.project(pose.apply(plate[present])),
+                                   spec.ball_diameter_mm / 2.0 * camera.fx / t[2])
+            out.under_clamp[name] = present[hidden]
         for s in range(specks):
             at = (camera.project(pose.apply(beyond[rng.integers(len(beyond))][None]))[0] if s == 0
                   else rng.uniform(0.2, 0.8, 2) * [camera.width, camera.height])
             _add_speck(line_integral, at, rng.uniform(5.0, 8.0))
         # The grid sits well inside the frame: the ideal canvas is the frame itself, and the
         # pincushion only pulls content inwards.
-        name = f"img{k:02d}"
         out.names.append(name)
         out.images.append(expose(line_integral, np.zeros(2), camera,
                                  replace(params, invert=inverted), distortion, noise))
