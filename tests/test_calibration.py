@@ -286,26 +286,6 @@ def test_a_running_service_picks_up_an_installed_calibration_without_restart(tmp
     assert [c.calibration_id for c in live.installed] == [or3.calibration_id]
 
 
-def test_every_screening_refusal_names_the_frame_and_why(real_set):
-    _, _, images = real_set
-    small = CalibrationImage("small", images[0].pixels[:512, :512].copy(), SPACING, 1000.0)
-    coarse = CalibrationImage("coarse", images[1].pixels.copy(), (0.4, 0.4), 1000.0)
-    _, report = calibrate(images + [small, coarse])
-    reasons = {e["image"]: e["reason"] for e in report["images"] if not e["used"]}
-    assert reasons["small"].startswith("different size 512x512 px")
-    assert reasons["coarse"].startswith("different pixel spacing [0.4, 0.4] mm")
-
-
-def test_a_set_of_flat_plates_is_refused_with_the_largest_tilt():
-    camera = default_camera()
-    flat = simulate_phantom_set(camera, default_distortion(camera), PhantomSpec(), 8,
-                                np.random.default_rng(5), max_tilt_deg=8.0)
-    with pytest.raises(CalibrationError, match=r"all plates are nearly fronto-parallel \(largest tilt "
-                                               r"\d\.\d deg, need 10.0\); tilt the phantom") as refused:
-        calibrate([CalibrationImage(n, im, SPACING, 1000.0) for n, im in zip(flat.names, flat.images)])
-    assert all(e["balls_found"] and e["reason"] is None for e in refused.value.report["images"])
-
-
 def test_install_refuses_an_unsafe_id_and_a_second_calibration_of_the_same_detector(tmp_path):
     made = tmp_path / "made"
     made.mkdir()
