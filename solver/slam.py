@@ -55,19 +55,16 @@ from slamtka.solver.optimizer import (
     levenberg_marquardt,
     pose_covariance,
 )
+from slamtka.solver.pin_naming import naming_clear, naming_score, settle_naming, swap_pays, swap_pins
 from slamtka.solver.plan import Plan, RigidModel
 from slamtka.solver.setup_search import SetupSearch, search_setup
 from slamtka.solver.terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
-from slamtka.solver.triangulation import PinSighting, sighting_score, triangulate_pin
+from slamtka.solver.triangulation import PinSighting, triangulate_pin
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint", "thin_contour"]
 
 # Coarse ray search in seat_on_rays: steps this many times the fine step.
 _SEAT_COARSE = 4
-# A view's two pin labels are swapped when the swap at least halves how badly the pins'
-# sightings meet and gains more than a millimetre (JointProblem.relabelled).
-_SWAP_GAIN = 0.5
-_SWAP_MIN_MM = 1.0
 
 log = logging.getLogger("slamtka.solver")
 
@@ -250,6 +247,15 @@ class SolveOutcome:
     edge_point_counts: dict[str, int] = field(default_factory=dict)
     initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
+    renamed: list[str] = field(default_factory=list)  # views whose pin names were swapped
+    unclear_naming: list[str] = field(default_factory=list)  # views whose pin names were open
+
+    @property
+    def angles_deg(self) -> tuple[float, float] | None:
+        """(CTR, STR) in degrees, when a plane was fitted."""
+        if self.plane is None:
+            return None
+        return float(np.degrees(self.plane.ctr)), float(np.degrees(self.plane.str_))
 
 
 def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
@@ -337,8 +343,11 @@ class EdgeGroup(NamedTuple):
 class JointProblem:
     """Variables, terms and gauge of one solve, built from a plan and the views."""
 
-    def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig):
+    def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig,
+                 naming_fixed: bool = False):
+        """``naming_fixed``: take the views' pin names as given (no :meth:`relabelled`)."""
         self.plan, self.views, self.config = plan, list(views), config
+        self.naming_fixed = naming_fixed
         self.bone = plan.bone_model()
         self.pin = plan.pin_model()
         self.n_views = len(views)
@@ -376,7 +385,7 @@ class JointProblem:
                                        view.notes)
         if all(a is b for a, b in zip(views, self.views)):
             return self
-        return JointProblem(self.plan, views, c)
+        return JointProblem(self.plan, views, c, self.naming_fixed)
 
     def point_counts(self) -> dict[str, int]:
         """Kept contour points per view and label, for the result document."""
@@ -415,29 +424,24 @@ class JointProblem:
         body = self.body_index(label)
         return poses[k] if body is None else poses[k] @ poses[body]
 
-    def relabelled(self, poses: tuple[Pose, ...]) -> tuple[JointProblem, list[str]]:
-        """The problem with the two pins' labels swapped in each view where the swap makes
-        both pins' sightings meet clearly better (views posed from the bone alone; labels
-        from extraction's guess): a pin called pin 1 in one view and pin 2 in the other would
-        be fitted as two pins that cross between the views, a wrong plane with no misfit.
-        Also the ids of the views swapped (``self`` and none when nothing is)."""
-        length = self.plan.pin_length()
-        a, b = PIN_LABELS
-
-        def score(views: list[ViewObservation]) -> float:
-            return sum(sighting_score([PinSighting(v.camera, poses[k], v.contours[label])
-                                       for k, v in enumerate(views)], length)
-                       for label in PIN_LABELS)
-
-        views, swapped = list(self.views), []
+    def relabelled(self, poses: tuple[Pose, ...]) -> tuple[JointProblem, list[str], list[str]]:
+        """The problem with the two pins' names swapped in each view where the swap makes
+        both pins' sightings meet clearly better (views posed from the bone alone; names
+        from extraction's guess; :mod:`solver.pin_naming`). Also the ids of the views
+        swapped, and of those whose naming is not clear either way."""
+        if self.naming_fixed:
+            return self, [], []
+        length, view_poses = self.plan.pin_length(), poses[: self.n_views]
+        views, swapped, unclear = list(self.views), [], []
         for k in range(1, self.n_views):
-            v = views[k]
-            trial = views[:k] + [ViewObservation(v.view_id, v.camera, {**v.contours, a: v.contours[b],
-                                                                       b: v.contours[a]}, v.notes)] + views[k + 1:]
-            kept, changed = score(views), score(trial)
-            if changed < min(_SWAP_GAIN * kept, kept - _SWAP_MIN_MM):
-                views, swapped = trial, swapped + [v.view_id]
-        return (JointProblem(self.plan, views, self.config) if swapped else self), swapped
+            trial = views[:k] + [swap_pins(views[k])] + views[k + 1:]
+            kept, changed = naming_score(views, view_poses, length), naming_score(trial, view_poses, length)
+            if swap_pays(kept, changed):
+                views, swapped, kept, changed = trial, swapped + [views[k].view_id], changed, kept
+            if not naming_clear(kept, changed):
+                unclear.append(views[k].view_id)
+        problem = JointProblem(self.plan, views, self.config) if swapped else self
+        return problem, swapped, unclear
 
     def triangulated_pins(self, poses: tuple[Pose, ...]) -> tuple[Pose, ...]:
         """Each pin's pose triangulated from its contours in the views at ``poses`` (the
@@ -565,6 +569,8 @@ class _Schedule:
         self.problem, self.callback = problem, callback
         self.odometry = problem.odometry_terms(initial)
         self.iterations, self.seconds = 0, 0.0
+        self.renamed: list[str] = []  # views whose pin names were swapped
+        self.unclear_naming: list[str] = []  # views whose pin names the sightings leave open
 
     def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
            name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
@@ -610,9 +616,9 @@ class _Schedule:
             # Lost already: the caller may restart from a global search at once.
             return state, p.silhouette_terms(("bone",), 1.0, tight), SolveReport(
                 False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])
-        p, swapped = p.relabelled(state.poses)
+        p, self.renamed, self.unclear_naming = p.relabelled(state.poses)
         self.problem = p
-        for view_id in swapped:
+        for view_id in self.renamed:
             log.info("view %s: the pin labels were swapped to match the other views", view_id)
         state = self.with_triangulated_pins(state)
         pins_options = c.fine if method == "projection-split" else c.coarse_pins
@@ -709,15 +715,52 @@ def solve_joint(
     refusal = gates.input_refusal(problem, initial)
     if refusal is not None:
         return _refused(problem, refusal, None, None, {}, start, poses)
+    outcome = _solve_restarting(problem, initial, callback, start)
+    if outcome.status != "measured" or not outcome.unclear_naming:
+        return outcome
+    # The pins' names were left open by their sightings at the bone's poses. At the poses
+    # solved they may be clear (a wrong naming never was on the simulated cases, where the
+    # other naming met better); if not, the other naming decides by fit.
+    unclear = outcome.unclear_naming
+    named = [swap_pins(v) if v.view_id in outcome.renamed else v for v in views]
+    # The other naming: the one solved, with the open views' names swapped.
+    other_views = [swap_pins(v) if v.view_id in unclear else v for v in named]
+    length = plan.pin_length()
+    if naming_clear(naming_score(named, outcome.T_cam_tibia, length),
+                    naming_score(other_views, outcome.T_cam_tibia, length)):
+        outcome.unclear_naming = []
+        return outcome
+    # From the views the first solve found (the bone's fit does not depend on the pins'
+    # names), and without the global searches: astray, this naming simply does not measure.
+    other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
+                        tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
+    chosen, refusal = settle_naming(outcome, other, unclear)
+    log.info("views %s: pin names open; swapped they %s (%s)", unclear,
+             "fit better" if chosen is other else "fit no better", other.status)
+    if chosen is other:  # its names, as against the views given
+        other.renamed = [v.view_id for v, given in zip(other_views, views) if v is not given]
+    chosen.unclear_naming = unclear
+    chosen.iterations = outcome.iterations + other.iterations
+    if refusal is not None:
+        chosen.status, chosen.reason = "not_measured", refusal
+    return chosen
+
+
+def _solve_restarting(problem: JointProblem, initial: InitialGuess,
+                      callback: Callable[[str, IterationInfo], None] | None,
+                      start: float) -> SolveOutcome:
+    """A solve from the encoders' guess, restarted from the global set-up searches in turn
+    while it goes astray."""
+    poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
     outcome = _solve_from(problem, initial, poses, callback, start)
     iterations = outcome.iterations
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
-                for T, view in zip(initial.T_cam_tibia, views)]
-    for search in config.global_searches:
+                for T, view in zip(initial.T_cam_tibia, problem.views)]
+    for search in problem.config.global_searches:
         if not outcome.went_astray:
             break
         correction = search_setup(problem.bone.coarse_contour, observed,
-                                  plan.landmarks.T_tibia_anat(), search)
+                                  problem.plan.landmarks.T_tibia_anat(), search)
         searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
         outcome = _solve_from(problem, initial, searched, callback, start)
         outcome.initialisation = "global set-up search"
@@ -766,6 +809,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     # The contour points offered (as extracted), and those that kept an edge point.
     outcome.point_counts = problem.point_counts()
     outcome.edge_point_counts = attributed.named(attributed.edge_point_counts(terms))
+    outcome.renamed, outcome.unclear_naming = schedule.renamed, schedule.unclear_naming
     return outcome
 
 
