@@ -37,18 +37,18 @@ from slamtka.drivers.protocol import (
     PROTOCOL_VERSION,
     AxisInfo,
     DeviceIdentity,
-    Frame,
+    DeviceStatus,
     FrameParser,
     MessageType,
     ProtocolError,
     ResultCode,
-    Status,
+    SerialFrame,
     StatusFlags,
     decode_stream_start,
-    encode_frame,
     encode_identity,
     encode_readings,
     encode_result,
+    encode_serial_frame,
     encode_status,
 )
 from slamtka.solver.jsonfile import read_json_object
@@ -509,7 +509,7 @@ class SimulatedCArm:
 
     def _frame(self, mtype: MessageType, payload: bytes, at: float) -> bytes:
         self._seq = (self._seq + 1) & 0xFFFFFFFF
-        return encode_frame(Frame(mtype, self._seq, self.device_time_us(at), payload, self.version))
+        return encode_serial_frame(SerialFrame(mtype, self._seq, self.device_time_us(at), payload, self.version))
 
     def _readings(self, times: np.ndarray) -> tuple[list[bytes], np.ndarray]:
         """READING payloads and encoder counts for the joints at these host times."""
@@ -518,7 +518,7 @@ class SimulatedCArm:
         counts = np.round(values / self._counts_scale).astype(np.int64)
         return encode_readings(self.script.flags(t), np.zeros(len(t)), counts), counts
 
-    def _answer(self, request: Frame, now: float) -> None:
+    def _answer(self, request: SerialFrame, now: float) -> None:
         self.stats.requests += 1
         mtype, result = request.type, None
         if request.version != self.version:
@@ -539,7 +539,7 @@ class SimulatedCArm:
             self._rate, result = 0, ResultCode.OK
         elif mtype == MessageType.STATUS_REQUEST:
             flags = int(self.script.flags(now - self.boot_monotonic)[0])
-            status = Status(flags, 0, self._rate, self.stats.overruns)
+            status = DeviceStatus(flags, 0, self._rate, self.stats.overruns)
             self._send([self._frame(MessageType.STATUS, encode_status(status), now)])
         else:
             result = ResultCode.UNSUPPORTED

@@ -5,133 +5,63 @@ stream, parses frames and keeps a bounded history of readings; when the device v
 (the read fails, as it does when a USB adapter is pulled) or stays silent too long, it closes
 the port and reopens it with exponential backoff until the device path is back.
 
-A reading is only handed out when it is valid (CRCs, payload size, no fault flag, within the
-declared axis range, no faster than the declared axis rate since the previous one) and not
-older than the maximum age. Device timestamps are mapped to host UTC with the minimum of
-(host receive time - device time) over a sliding window, the standard one-way clock estimate:
-it converges to the fixed offset plus the smallest transport delay and absorbs slow drift.
-Host times come from ``time.monotonic`` anchored to UTC when a session starts, so wall-clock
-steps do not disturb ages or latencies.
+A reading is only handed out when it is valid (CRCs, then :mod:`drivers.reading_validation`)
+and not older than the maximum age; device timestamps are mapped to host UTC by
+:class:`drivers.reading_history.DeviceClock`. Host times come from ``time.monotonic``
+anchored to UTC when a session starts, so wall-clock steps do not disturb ages or
+latencies. The port itself, and the errors that name what went wrong with it, are
+:mod:`drivers.serial_port`.
 """
 
 from __future__ import annotations
 
-import errno
 import logging
 import math
 import os
-import stat
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
-import numpy as np
 import serial
 
-from slamtka.drivers.kinematics import AXIS_UNITS, JOINT_FIELD, JointReading, config_number
+from slamtka.drivers.kinematics import AXIS_UNITS, config_number
 from slamtka.drivers.protocol import (
-    INVALID_FLAGS,
     PROTOCOL_VERSION,
     DeviceIdentity,
-    Frame,
+    DeviceStatus,
     FrameParser,
     MessageType,
     ParserStats,
     ProtocolError,
     ResultCode,
-    Status,
-    StatusFlags,
+    SerialFrame,
     decode_identity,
-    decode_reading,
     decode_result,
     decode_status,
-    encode_frame,
+    encode_serial_frame,
     encode_stream_start,
 )
+from slamtka.drivers.reading_history import DeviceClock, EncoderReading, ReadingHistory
+from slamtka.drivers.reading_validation import ReadingValidator, RejectionCounts, Verdict
+from slamtka.drivers.serial_port import (
+    DeviceLostError,
+    DeviceRejectedError,
+    LinkError,
+    NoAnswerError,
+    ProtocolVersionError,
+    WrongDeviceError,
+    open_port,
+)
 
-__all__ = [
-    "LinkConfig", "EncoderLink", "EncoderReading", "LinkState", "LinkStats", "ReadingHistory",
-    "LinkError", "PortNotFoundError", "PortBusyError", "PortPermissionError", "WrongDeviceError",
-    "ProtocolVersionError", "NoAnswerError", "DeviceRejectedError", "DeviceLostError", "open_port",
-]
+__all__ = ["LinkConfig", "EncoderLink", "LinkState", "LinkStats"]
 
 log = logging.getLogger("slamtka.link")
 
 READ_POLL_S = 0.005  # longest a read blocks: bounds how late silence and stop are noticed
-IMPLAUSIBLE_RUN_RESET = 10  # after this many rejections in a row, re-anchor the rate check
-_INVALID_FLAGS = int(INVALID_FLAGS)
-
-
-class LinkError(RuntimeError):
-    """A problem with the encoder link; the message names it and the port."""
-
-
-class PortNotFoundError(LinkError):
-    pass
-
-
-class PortBusyError(LinkError):
-    pass
-
-
-class PortPermissionError(LinkError):
-    pass
-
-
-class WrongDeviceError(LinkError):
-    pass
-
-
-class ProtocolVersionError(LinkError):
-    pass
-
-
-class NoAnswerError(LinkError):
-    pass
-
-
-class DeviceRejectedError(LinkError):
-    pass
-
-
-class DeviceLostError(LinkError):
-    """The device vanished or fell silent during a session."""
-
-
-def open_port(port: str, baudrate: int, timeout: float) -> serial.Serial:
-    """Open ``port`` exclusively, raising a LinkError that names what went wrong."""
-    try:
-        mode = os.stat(port).st_mode
-    except FileNotFoundError:
-        raise PortNotFoundError(f"serial port {port} does not exist (device unplugged or wrong "
-                                "path)") from None
-    except PermissionError:
-        raise PortPermissionError(f"permission denied looking up serial port {port}") from None
-    if not stat.S_ISCHR(mode):
-        raise WrongDeviceError(f"{port} is not a serial device (not a character device)")
-    ser = serial.Serial()
-    ser.port, ser.baudrate, ser.timeout, ser.write_timeout = port, baudrate, timeout, 0.2
-    ser.exclusive = True
-    try:
-        ser.open()
-    except serial.SerialException as exc:
-        code = exc.errno
-        if code in (errno.EACCES, errno.EPERM):
-            raise PortPermissionError(f"permission denied opening serial port {port}: the service "
-                                      "user needs read/write access (e.g. membership of the "
-                                      "'dialout' group)") from None
-        if code in (errno.EAGAIN, errno.EBUSY):
-            raise PortBusyError(f"serial port {port} is busy: another process holds it open") from None
-        if code in (errno.ENOENT, errno.ENODEV, errno.ENXIO):
-            raise PortNotFoundError(f"serial port {port} vanished while opening ({exc})") from None
-        if code is None:  # pyserial could not apply terminal settings: not a tty
-            raise WrongDeviceError(f"{port} is not a serial port ({exc})") from None
-        raise LinkError(f"cannot open serial port {port}: {exc}") from None
-    return ser
 
 
 @dataclass(frozen=True)
@@ -180,7 +110,7 @@ class LinkConfig:
         if unknown:
             raise ValueError(f"encoder link configuration: unknown keys {sorted(unknown)}; "
                              f"allowed: {sorted(names)}")
-        kwargs = {}
+        kwargs: dict[str, Any] = {}
         for key, value in d.items():
             default = getattr(LinkConfig, key)
             if not isinstance(default, tuple):
@@ -199,34 +129,6 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
-class EncoderReading:
-    """One validated encoder reading."""
-
-    sequence: int
-    device_time_us: int  # the device's clock when it sampled the joints
-    time_utc: datetime  # that instant on the host's UTC clock (see the module docstring)
-    received_utc: datetime  # when the host put it in the history
-    received_monotonic: float  # the same instant on time.monotonic()
-    joints: JointReading
-    flags: int
-
-    @property
-    def moving(self) -> bool:
-        return bool(self.flags & StatusFlags.MOVING)
-
-    def age_s(self, now_monotonic: float | None = None) -> float:
-        """Seconds since the joints were sampled."""
-        now = time.monotonic() if now_monotonic is None else now_monotonic
-        return now - self.received_monotonic + (self.received_utc - self.time_utc).total_seconds()
-
-    def to_json(self) -> dict:
-        return {"sequence": self.sequence, "device_time_us": self.device_time_us,
-                "time_utc": self.time_utc.isoformat(), "received_utc": self.received_utc.isoformat(),
-                "joints": self.joints.to_json(),
-                "flags": [f.name for f in StatusFlags if self.flags & f]}
-
-
-@dataclass(frozen=True)
 class LinkState:
     status: str  # "connecting", "connected", "silent", "disconnected" or "stopped"
     reason: str
@@ -239,83 +141,8 @@ class LinkState:
 class LinkStats:
     sessions: int = 0  # successful connections
     readings: int = 0  # accepted into the history
-    rejected_malformed: int = 0  # valid frame, wrong payload for a reading
-    rejected_invalid: int = 0  # the device flagged the values invalid
-    rejected_range: int = 0  # outside the declared axis range
-    rejected_rate: int = 0  # moved faster than the declared axis rate
-    rejected_duplicate: int = 0  # a sequence number or timestamp seen already
-    clock_resets: int = 0  # the device clock went backwards (device restarted)
+    rejected: RejectionCounts = field(default_factory=RejectionCounts)  # frames not used, by reason
     parser: ParserStats = field(default_factory=ParserStats)
-
-
-class ReadingHistory:
-    """A bounded, thread-safe history of readings, looked up by UTC time."""
-
-    def __init__(self, capacity: int) -> None:
-        self._times = np.full(capacity, np.nan)  # POSIX seconds of each reading's time_utc
-        self._items: list[EncoderReading | None] = [None] * capacity
-        self._next = 0
-        self._count = 0
-        self._lock = threading.Lock()
-
-    def __len__(self) -> int:
-        return self._count
-
-    @property
-    def capacity(self) -> int:
-        return len(self._items)
-
-    def append(self, reading: EncoderReading, t_posix: float) -> None:
-        """Add a reading sampled at ``t_posix`` (its time_utc as POSIX seconds)."""
-        with self._lock:
-            self._times[self._next] = t_posix
-            self._items[self._next] = reading
-            self._next = (self._next + 1) % len(self._items)
-            self._count = min(self._count + 1, len(self._items))
-
-    def last(self) -> EncoderReading | None:
-        with self._lock:
-            return self._items[self._next - 1] if self._count else None
-
-    def between(self, t0_posix: float, t1_posix: float) -> list[tuple[float, EncoderReading]]:
-        """Every reading sampled in [t0, t1], as (POSIX seconds, reading), oldest first."""
-        with self._lock:
-            inside = np.flatnonzero((self._times >= t0_posix) & (self._times <= t1_posix))
-            found = [(float(self._times[k]), self._items[k]) for k in inside]
-        return sorted(found, key=lambda item: item[0])
-
-    def nearest(self, t_posix: float, max_age_s: float) -> EncoderReading | None:
-        """The reading sampled closest to ``t_posix``, if within ``max_age_s`` of it."""
-        with self._lock:
-            if not self._count:
-                return None
-            gaps = np.abs(self._times - t_posix)  # empty slots are NaN and never win
-            k = int(np.nanargmin(gaps))
-            return self._items[k] if gaps[k] <= max_age_s else None
-
-
-class _ClockMap:
-    """Device microseconds to host POSIX seconds: sliding-window minimum of the offset."""
-
-    def __init__(self, window: int) -> None:
-        self.window = window
-        self._mins: deque[tuple[int, float]] = deque()  # (index, offset), offsets increasing
-        self._n = 0
-
-    def reset(self) -> None:
-        self._mins.clear()
-
-    def update(self, device_time_us: int, host_s: float) -> float:
-        """Add one sample; return the device time mapped to host seconds."""
-        device_s = device_time_us * 1e-6
-        offset = host_s - device_s
-        while self._mins and self._mins[-1][1] >= offset:
-            self._mins.pop()
-        self._mins.append((self._n, offset))
-        while self._mins[0][0] <= self._n - self.window:
-            self._mins.popleft()
-        self._n += 1
-        return device_s + self._mins[0][1]
 
 
 class EncoderLink:
@@ -338,15 +165,12 @@ class EncoderLink:
         self._serial: serial.Serial | None = None
         self._write_lock = threading.Lock()
         self._changed = threading.Condition()  # notified on every reading, reply and state change
-        self._replies: dict[int, Frame] = {}  # last frame of each non-reading type
+        self._replies: dict[int, SerialFrame] = {}  # last frame of each non-reading type
         self._seq = 0
         self._identity: DeviceIdentity | None = None
-        self._axes: _AxisScale | None = None
-        self._clock = _ClockMap(config.clock_window)
+        self._validator: ReadingValidator | None = None  # of the session's device
+        self._clock = DeviceClock(config.clock_window)
         self._utc_base = 0.0
-        self._last: EncoderReading | None = None
-        self._last_counts = np.zeros(0, dtype=np.int64)
-        self._implausible_run = 0
         self._last_frame = 0.0
         self._state = self._make_state("stopped", "not started")
 
@@ -409,6 +233,7 @@ class EncoderLink:
                     raise TimeoutError(f"encoder link {self.port} not connected after {timeout} s: "
                                        f"{self._state.reason}")
                 self._changed.wait(left)
+            assert self._identity is not None  # connected: the device has identified itself
             return self._identity
 
     def wait_reading(self, timeout: float, after_sequence: int | None = None) -> EncoderReading:
@@ -453,7 +278,7 @@ class EncoderLink:
         self._send(MessageType.READ_ONCE)
         return self.wait_reading(timeout, None if previous is None else previous.sequence)
 
-    def request_status(self, timeout: float = 0.25) -> Status:
+    def request_status(self, timeout: float = 0.25) -> DeviceStatus:
         """The device's STATUS (flags, stream rate, dropped frames) on request: public API for
         tools and tests diagnosing a device; the service reads only the stream."""
         with self._changed:
@@ -496,9 +321,9 @@ class EncoderLink:
             if ser is None:
                 raise LinkError(f"encoder link {self.port} is {self._state.status}: {self._state.reason}")
             self._seq = (self._seq + 1) & 0xFFFFFFFF
-            frame = Frame(mtype, self._seq, int(time.monotonic() * 1e6), payload)
+            frame = SerialFrame(mtype, self._seq, int(time.monotonic() * 1e6), payload)
             try:
-                ser.write(encode_frame(frame))
+                ser.write(encode_serial_frame(frame))
             except (serial.SerialException, OSError, TypeError) as exc:
                 raise DeviceLostError(f"{self.port}: write failed ({exc})") from None
             return self._seq
@@ -534,7 +359,7 @@ class EncoderLink:
         if ser is not None:
             try:
                 if ser.is_open and self._identity is not None:
-                    ser.write(encode_frame(Frame(MessageType.STREAM_STOP, self._seq + 1, 0)))
+                    ser.write(encode_serial_frame(SerialFrame(MessageType.STREAM_STOP, self._seq + 1, 0)))
             except (serial.SerialException, OSError):
                 pass  # the device is gone; nothing to stop
             ser.close()
@@ -542,6 +367,8 @@ class EncoderLink:
     def _read_chunk(self) -> bytes:
         """Whatever arrived, waiting at most READ_POLL_S; raise DeviceLostError if gone."""
         ser = self._serial
+        if ser is None:  # closed by stop() meanwhile
+            return b""
         try:
             data = ser.read(max(1, ser.in_waiting))
             if data and ser.in_waiting:
@@ -564,7 +391,7 @@ class EncoderLink:
                     self._replies[frame.type] = frame
                     self._changed.notify_all()
 
-    def _take(self, frame: Frame) -> bool:
+    def _take(self, frame: SerialFrame) -> bool:
         """The parser's check, called in stream order for every frame with valid CRCs: take a
         reading into the history; False means the frame cannot be genuine."""
         if frame.version != PROTOCOL_VERSION:
@@ -572,13 +399,13 @@ class EncoderLink:
                 f"the device on {self.port} speaks protocol version {frame.version}; this driver "
                 f"supports version {PROTOCOL_VERSION}")
         self._last_frame = time.monotonic()
-        device = self._identity
-        if frame.type != MessageType.READING or device is None:
+        validator = self._validator
+        if frame.type != MessageType.READING or validator is None:
             return True
-        return self._accept_reading(frame, device)
+        return self._accept_reading(frame, validator)
 
     def _wait_reply(self, mtype: MessageType, deadline: float, pump: bool = True,
-                    request_seq: int | None = None) -> Frame | None:
+                    request_seq: int | None = None) -> SerialFrame | None:
         """The reply of type ``mtype`` (for ``request_seq`` if a RESULT), or None at the deadline.
 
         The reader thread pumps the port itself; other threads wait to be notified.
@@ -594,7 +421,7 @@ class EncoderLink:
                 self._pump()
         return None
 
-    def _request(self, mtype: MessageType, payload: bytes, reply: MessageType) -> Frame | None:
+    def _request(self, mtype: MessageType, payload: bytes, reply: MessageType) -> SerialFrame | None:
         """Send a request and wait for its reply, retrying; None only when stopping."""
         cfg = self.config
         frames_before, bytes_before = self._parser.stats.frames, self._parser.stats.bytes_in
@@ -618,10 +445,9 @@ class EncoderLink:
         self._parser.reset()
         with self._changed:
             self._replies.clear()
-        self._identity = None
+        self._identity, self._validator = None, None
         self._clock.reset()
-        self._last = None
-        self._implausible_run = 0
+        assert self._serial is not None  # a handshake follows the port's opening
         self._serial.reset_input_buffer()
         frame = self._request(MessageType.IDENTIFY_REQUEST, b"", MessageType.IDENTIFY)
         if frame is None:
@@ -656,7 +482,8 @@ class EncoderLink:
         if missing:
             raise WrongDeviceError(f"the device on {self.port} ({identity.model}) lacks the axes {missing}; "
                                    f"it reports {list(identity.axis_names)}")
-        self._axes = _AxisScale(identity)
+        self._validator = ReadingValidator(identity, self.config.rate_margin, self.port,
+                                           self._stats.rejected)
         self._identity = identity
 
     def _stream(self) -> None:
@@ -683,51 +510,22 @@ class EncoderLink:
                 self._send(MessageType.STREAM_START, encode_stream_start(cfg.rate_hz))
                 last_restart = time.monotonic()
 
-    def _accept_reading(self, frame: Frame, device: DeviceIdentity) -> bool:
-        """Validate a READING frame and put it in the history (see the module docstring).
-
-        False for a frame whose content is impossible (wrong size, out of range, too fast):
-        one that slipped through the CRCs. Readings the device itself flags invalid, and
-        repeats, are genuine frames that are merely not used."""
-        stats, axes = self._stats, self._axes
-        try:
-            flags, _, counts = decode_reading(frame.payload, device)
-        except ProtocolError:
-            stats.rejected_malformed += 1
-            return False
-        last = self._last
-        if flags & _INVALID_FLAGS:
-            stats.rejected_invalid += 1
-            self._last = None  # values may jump when the device recovers (re-homing)
-            return True
-        if axes.out_of_range(counts):
-            stats.rejected_range += 1
-            return False
-        if last is not None:
-            dt = (frame.device_time_us - last.device_time_us) * 1e-6
-            if dt < 0:
-                stats.clock_resets += 1  # the device restarted: new clock, new sequence
-                self._clock.reset()
-            elif dt == 0 or frame.sequence == last.sequence:
-                stats.rejected_duplicate += 1
-                return True
-            elif axes.too_fast(counts, self._last_counts, dt * self.config.rate_margin):
-                stats.rejected_rate += 1
-                self._implausible_run += 1
-                if self._implausible_run >= IMPLAUSIBLE_RUN_RESET:
-                    log.warning("encoder link %s: values jumped; re-anchoring the rate check", self.port)
-                    self._last = None
-                return False
-        self._implausible_run = 0
+    def _accept_reading(self, frame: SerialFrame, validator: ReadingValidator) -> bool:
+        """Put a READING frame that passes the validator in the history; False for one whose
+        content is impossible (:mod:`drivers.reading_validation`)."""
+        judgement = validator.judge(frame)
+        if judgement.verdict is not Verdict.USE or judgement.joints is None:
+            return judgement.verdict is Verdict.SKIP
+        if judgement.clock_restarted:
+            self._clock.reset()
         now = time.monotonic()
         t_utc = self._clock.update(frame.device_time_us, self._utc_base + now)
         reading = EncoderReading(frame.sequence, frame.device_time_us,
                                  datetime.fromtimestamp(t_utc, UTC),
                                  datetime.fromtimestamp(self._utc_base + now, UTC),
-                                 now, axes.joints(counts), flags)
-        self._last, self._last_counts = reading, counts
+                                 now, judgement.joints, judgement.flags)
         self._history.append(reading, t_utc)
-        stats.readings += 1
+        self._stats.readings += 1
         with self._changed:
             self._changed.notify_all()
         if self._on_reading is not None:
@@ -738,32 +536,7 @@ class EncoderLink:
         return True
 
 
-class _AxisScale:
-    """A device's declared axes in encoder counts, for cheap per-reading checks."""
-
-    def __init__(self, identity: DeviceIdentity) -> None:
-        res = np.array([a.resolution for a in identity.axes])
-        self.resolution = res
-        self.lo = np.array([a.minimum for a in identity.axes]) / res
-        self.hi = np.array([a.maximum for a in identity.axes]) / res
-        self.rate = np.array([a.max_rate for a in identity.axes]) / res  # counts per second
-        known = [(k, a.name) for k, a in enumerate(identity.axes) if a.name in JOINT_FIELD]
-        self.index = np.array([k for k, _ in known], dtype=np.int64)
-        self.fields = tuple(JOINT_FIELD[name] for _, name in known)
-
-    def out_of_range(self, counts: np.ndarray) -> bool:
-        return bool(((counts < self.lo) | (counts > self.hi)).any())
-
-    def too_fast(self, counts: np.ndarray, previous: np.ndarray, seconds: float) -> bool:
-        """Moved more than the declared rate allows in ``seconds`` (plus 2 counts of rounding)."""
-        return bool((np.abs(counts - previous) > self.rate * seconds + 2).any())
-
-    def joints(self, counts: np.ndarray) -> JointReading:
-        values = (counts[self.index] * self.resolution[self.index]).tolist()
-        return JointReading(**dict(zip(self.fields, values)))
-
-
-def _answers(frame: Frame, request_seq: int) -> bool:
+def _answers(frame: SerialFrame, request_seq: int) -> bool:
     """Whether a RESULT frame answers the request with sequence number ``request_seq``."""
     try:
         return decode_result(frame.payload)[1] == request_seq

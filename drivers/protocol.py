@@ -23,11 +23,11 @@ import numpy as np
 
 __all__ = [
     "MARKER", "PROTOCOL_VERSION", "MAX_PAYLOAD", "FRAME_OVERHEAD", "ProtocolError", "MessageType",
-    "ResultCode", "StatusFlags", "INVALID_FLAGS", "Frame", "crc16", "encode_frame", "FrameParser",
+    "ResultCode", "StatusFlags", "INVALID_FLAGS", "SerialFrame", "crc16", "encode_serial_frame", "FrameParser",
     "ParserStats",
     "AxisInfo", "DeviceIdentity", "encode_identity", "decode_identity", "encode_reading", "encode_readings",
     "decode_reading", "encode_stream_start", "decode_stream_start", "encode_result",
-    "decode_result", "Status", "encode_status", "decode_status",
+    "decode_result", "DeviceStatus", "encode_status", "decode_status",
 ]
 
 MARKER = b"\xa5\x5a"
@@ -82,7 +82,7 @@ def crc16(data: bytes | bytearray) -> int:
 
 
 @dataclass(frozen=True)
-class Frame:
+class SerialFrame:
     type: int
     sequence: int
     device_time_us: int
@@ -94,7 +94,7 @@ class Frame:
         return FRAME_OVERHEAD + len(self.payload)
 
 
-def encode_frame(frame: Frame) -> bytes:
+def encode_serial_frame(frame: SerialFrame) -> bytes:
     if len(frame.payload) > MAX_PAYLOAD:
         raise ProtocolError(f"payload of {len(frame.payload)} bytes exceeds {MAX_PAYLOAD}")
     header = _HEADER.pack(MARKER, frame.version, frame.type, len(frame.payload),
@@ -125,7 +125,7 @@ class FrameParser:
 
     max_payload: int = MAX_PAYLOAD
     stats: ParserStats = field(default_factory=ParserStats)
-    check: Callable[[Frame], bool] | None = None
+    check: Callable[[SerialFrame], bool] | None = None
     _buf: bytearray = field(default_factory=bytearray, repr=False)
     _carry: int = field(default=0, repr=False)  # leading buffer bytes that ended the last frame
 
@@ -140,11 +140,11 @@ class FrameParser:
         self._buf.clear()
         self._carry = 0
 
-    def feed(self, data: bytes) -> list[Frame]:
+    def feed(self, data: bytes) -> list[SerialFrame]:
         buf = self._buf
         buf += data
         self.stats.bytes_in += len(data)
-        frames: list[Frame] = []
+        frames: list[SerialFrame] = []
         # ``covered``: bytes before it belong to accepted frames (the buffer may start with the
         # last byte of the previous one, see below). Only bytes beyond it count as discarded.
         carry_in = self._carry
@@ -173,7 +173,7 @@ class FrameParser:
                 self.stats.crc_errors += 1
                 pos = start + 1
                 continue
-            frame = Frame(mtype, seq, t_us, bytes(buf[start + HEADER_SIZE:end - _CRC.size]), version)
+            frame = SerialFrame(mtype, seq, t_us, bytes(buf[start + HEADER_SIZE:end - _CRC.size]), version)
             if self.check is not None and not self.check(frame):
                 self.stats.implausible += 1
                 pos = start + 1
@@ -367,7 +367,7 @@ def decode_result(payload: bytes) -> tuple[int, int, int]:
 
 
 @dataclass(frozen=True)
-class Status:
+class DeviceStatus:
     flags: int
     fault_mask: int
     stream_rate_hz: int  # 0 when not streaming
@@ -377,13 +377,13 @@ class Status:
 _STATUS = struct.Struct("<HHHI")
 
 
-def encode_status(status: Status) -> bytes:
+def encode_status(status: DeviceStatus) -> bytes:
     return _STATUS.pack(status.flags, status.fault_mask, status.stream_rate_hz,
                         status.frames_dropped & 0xFFFFFFFF)
 
 
-def decode_status(payload: bytes) -> Status:
+def decode_status(payload: bytes) -> DeviceStatus:
     r = _Reader(payload, "STATUS")
-    status = Status(*r.unpack(_STATUS))
+    status = DeviceStatus(*r.unpack(_STATUS))
     r.done()
     return status

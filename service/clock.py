@@ -21,8 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
-from slamtka.drivers.encoder_link import EncoderLink, EncoderReading
+from slamtka.drivers.encoder_link import EncoderLink
 from slamtka.drivers.kinematics import AngleCheck, CArmKinematics, PatientSetup, check_dicom_angles
+from slamtka.drivers.reading_history import EncoderReading
 
 __all__ = ["ClockCheck", "review_pairing"]
 

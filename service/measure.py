@@ -23,8 +23,8 @@ from pathlib import Path
 import pydicom
 from pydicom.errors import InvalidDicomError
 
-from slamtka.drivers.encoder_link import EncoderReading
 from slamtka.drivers.kinematics import CArmKinematics, JointReading
+from slamtka.drivers.reading_history import EncoderReading
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.config import CarmConfig, PipelineConfig
 from slamtka.service.frames import FrameError, decode_frame

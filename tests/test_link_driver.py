@@ -13,29 +13,27 @@ import numpy as np
 import pytest
 
 from slamtka.drivers.carm_sim import DEFAULT_IDENTITY, FaultSpec, MotionScript, SimulatedCArm
-from slamtka.drivers.encoder_link import (
-    EncoderLink,
-    EncoderReading,
-    LinkConfig,
+from slamtka.drivers.encoder_link import EncoderLink, LinkConfig
+from slamtka.drivers.kinematics import JointReading
+from slamtka.drivers.protocol import (
+    FrameParser,
+    MessageType,
+    ResultCode,
+    SerialFrame,
+    StatusFlags,
+    encode_identity,
+    encode_reading,
+    encode_result,
+    encode_serial_frame,
+)
+from slamtka.drivers.reading_history import EncoderReading, ReadingHistory
+from slamtka.drivers.serial_port import (
     PortBusyError,
     PortNotFoundError,
     PortPermissionError,
     ProtocolVersionError,
-    ReadingHistory,
     WrongDeviceError,
     open_port,
-)
-from slamtka.drivers.kinematics import JointReading
-from slamtka.drivers.protocol import (
-    Frame,
-    FrameParser,
-    MessageType,
-    ResultCode,
-    StatusFlags,
-    encode_frame,
-    encode_identity,
-    encode_reading,
-    encode_result,
 )
 
 SCRIPT = MotionScript.from_orbital((0.0, -30.0, 30.0), hold_s=0.5, move_s=2.0)
@@ -250,17 +248,17 @@ class ScriptedDevice:
                 continue
             for request in parser.feed(os.read(self.master, 4096)):
                 if request.type == MessageType.IDENTIFY_REQUEST:
-                    self.send(Frame(MessageType.IDENTIFY, 1, 0, encode_identity(DEFAULT_IDENTITY)))
+                    self.send(SerialFrame(MessageType.IDENTIFY, 1, 0, encode_identity(DEFAULT_IDENTITY)))
                 elif request.type in (MessageType.STREAM_START, MessageType.STREAM_STOP):
-                    self.send(Frame(MessageType.RESULT, 2, 0,
+                    self.send(SerialFrame(MessageType.RESULT, 2, 0,
                                     encode_result(request.type, request.sequence, ResultCode.OK)))
 
-    def send(self, frame: Frame) -> None:
-        os.write(self.master, encode_frame(frame))
+    def send(self, frame: SerialFrame) -> None:
+        os.write(self.master, encode_serial_frame(frame))
 
     def reading(self, seq: int, t_us: int, orbital_deg: float, flags: int = 0, n_axes: int = 6) -> None:
         counts = np.array([round(orbital_deg * 1000), 0, 0, 200_000, 100_000, 1_000_000][:n_axes])
-        self.send(Frame(MessageType.READING, seq, t_us, encode_reading(flags, 0, counts)))
+        self.send(SerialFrame(MessageType.READING, seq, t_us, encode_reading(flags, 0, counts)))
 
     def close(self) -> None:
         self._stop.set()
@@ -293,8 +291,8 @@ def test_implausible_readings_are_rejected():
         device.close()
     assert [r.sequence for r in got] == [10, 11, 16]
     assert got[-1].moving and got[-1].joints.orbital_deg == pytest.approx(1.5)
-    assert (stats.rejected_rate, stats.rejected_duplicate, stats.rejected_range,
-            stats.rejected_invalid, stats.rejected_malformed) == (1, 1, 1, 1, 1)
+    rejected = stats.rejected
+    assert (rejected.rate, rejected.duplicate, rejected.range, rejected.invalid, rejected.malformed) == (1, 1, 1, 1, 1)
 
 
 def test_history_is_bounded_and_configuration_is_checked():

@@ -16,30 +16,30 @@ from slamtka.drivers.protocol import (
     MAX_PAYLOAD,
     AxisInfo,
     DeviceIdentity,
-    Frame,
+    DeviceStatus,
     FrameParser,
     MessageType,
     ProtocolError,
     ResultCode,
-    Status,
+    SerialFrame,
     crc16,
     decode_identity,
     decode_reading,
     decode_result,
     decode_status,
     decode_stream_start,
-    encode_frame,
     encode_identity,
     encode_reading,
     encode_result,
+    encode_serial_frame,
     encode_status,
     encode_stream_start,
 )
 
 
-def reading_frame(seq: int, n_axes: int = 6) -> Frame:
+def reading_frame(seq: int, n_axes: int = 6) -> SerialFrame:
     counts = (np.arange(n_axes) + 1) * (seq * 7919 % 100_000) - 50_000
-    return Frame(MessageType.READING, seq, 1_000_000 + 250 * seq, encode_reading(seq % 4, 0, counts))
+    return SerialFrame(MessageType.READING, seq, 1_000_000 + 250 * seq, encode_reading(seq % 4, 0, counts))
 
 
 def test_crc16_is_ccitt_false():
@@ -49,7 +49,7 @@ def test_crc16_is_ccitt_false():
 
 def test_frame_layout_matches_the_protocol_page():
     payload = b"\x01\x02\x03"
-    raw = encode_frame(Frame(MessageType.STATUS, 0x01020304, 0x1122334455667788, payload))
+    raw = encode_serial_frame(SerialFrame(MessageType.STATUS, 0x01020304, 0x1122334455667788, payload))
     assert raw[:2] == MARKER == b"\xa5\x5a"
     version, mtype, length, seq, t_us = struct.unpack_from("<BBHIQ", raw, 2)
     assert (version, mtype, length, seq, t_us) == (1, 0x85, 3, 0x01020304, 0x1122334455667788)
@@ -67,7 +67,7 @@ def test_messages_round_trip():
     assert decode_stream_start(encode_stream_start(250)) == 250
     result = encode_result(MessageType.STREAM_START, 99, ResultCode.RATE_OUT_OF_RANGE)
     assert decode_result(result) == (3, 99, 3)
-    status = Status(0x11, 0x4, 100, 12345)
+    status = DeviceStatus(0x11, 0x4, 100, 12345)
     assert decode_status(encode_status(status)) == status
 
 
@@ -80,7 +80,7 @@ def test_payload_errors_name_the_problem():
     with pytest.raises(ProtocolError, match="28 expected for 6 axes"):
         decode_reading(b"\x00" * 24, DEFAULT_IDENTITY)
     with pytest.raises(ProtocolError, match="exceeds 512"):
-        encode_frame(Frame(MessageType.STATUS, 1, 1, b"\x00" * (MAX_PAYLOAD + 1)))
+        encode_serial_frame(SerialFrame(MessageType.STATUS, 1, 1, b"\x00" * (MAX_PAYLOAD + 1)))
     with pytest.raises(ProtocolError, match="unit 'rad'"):
         AxisInfo("orbital", "rad", 0.001, -1.0, 1.0, 1.0)
     with pytest.raises(ProtocolError, match="empty"):
@@ -95,7 +95,7 @@ def test_payload_errors_name_the_problem():
 
 def test_parser_gives_the_same_frames_for_any_chunking():
     frames = [reading_frame(k) for k in range(200)]
-    stream = b"".join(encode_frame(f) for f in frames)
+    stream = b"".join(encode_serial_frame(f) for f in frames)
     rng = np.random.default_rng(3)
     cuts = np.sort(rng.choice(np.arange(1, len(stream)), 600, replace=False))
     parser = FrameParser()
@@ -110,7 +110,7 @@ def test_parser_gives_the_same_frames_for_any_chunking():
 
 
 def test_parser_resynchronises_within_one_frame():
-    good = [encode_frame(reading_frame(k)) for k in range(6)]
+    good = [encode_serial_frame(reading_frame(k)) for k in range(6)]
     flipped = bytearray(good[1])
     flipped[30] ^= 0x10  # a payload bit: the frame CRC fails
     long_length = bytearray(good[3])
@@ -125,7 +125,7 @@ def test_parser_resynchronises_within_one_frame():
 
 
 def test_a_corrupted_length_does_not_hold_back_the_next_frame():
-    first, second = encode_frame(reading_frame(1)), encode_frame(reading_frame(2))
+    first, second = encode_serial_frame(reading_frame(1)), encode_serial_frame(reading_frame(2))
     corrupted = bytearray(first)
     corrupted[4], corrupted[5] = 0xF4, 0x01  # claims a 500-byte payload
     parser = FrameParser()
@@ -140,7 +140,7 @@ def test_parser_never_yields_a_corrupted_frame_and_never_loses_a_clean_one():
     parser = FrameParser()
     received, corrupted = [], np.zeros(len(frames), bool)
     for k in range(0, len(frames), 8):
-        data, hit = injector.apply([encode_frame(f) for f in frames[k:k + 8]])
+        data, hit = injector.apply([encode_serial_frame(f) for f in frames[k:k + 8]])
         corrupted[k:k + 8] = hit
         received += parser.feed(data)
         assert parser.pending < FRAME_OVERHEAD + MAX_PAYLOAD
@@ -156,10 +156,10 @@ def test_a_frame_failing_the_check_does_not_swallow_the_next_one():
     """A corrupted frame can pass a CRC-16 by chance (1 in 65 536) while its tail overlaps the
     next frame's marker, as a dropped byte makes it. The receiver's check rejects its content;
     the parser must then still find the next frame inside those bytes."""
-    following = encode_frame(reading_frame(2))
+    following = encode_serial_frame(reading_frame(2))
     # Search a bogus frame whose frame CRC bytes are exactly the next frame's marker.
     for k in range(1 << 16):
-        bogus = encode_frame(Frame(MessageType.READING, 1, 10, k.to_bytes(2, "little") + b"\xff" * 26))
+        bogus = encode_serial_frame(SerialFrame(MessageType.READING, 1, 10, k.to_bytes(2, "little") + b"\xff" * 26))
         if bogus[-2:] == MARKER:
             break
     stream = bogus[:-2] + following  # the bogus frame ends inside the genuine one
@@ -174,11 +174,11 @@ def test_a_frame_that_lost_its_last_byte_does_not_swallow_the_next_one():
     frame still passes, completed by the next frame's first byte, and is genuine. The next
     frame must be found starting inside it, also across feeds."""
     for k in range(1 << 16):
-        frame = Frame(MessageType.READING, 1, 10, encode_reading(0, 0, np.array([k, 0, 0])))
-        raw = encode_frame(frame)
+        frame = SerialFrame(MessageType.READING, 1, 10, encode_reading(0, 0, np.array([k, 0, 0])))
+        raw = encode_serial_frame(frame)
         if raw[-1] == MARKER[0]:
             break
-    following = encode_frame(reading_frame(2))
+    following = encode_serial_frame(reading_frame(2))
     stream = raw[:-1] + following
     parser = FrameParser()
     assert [f.sequence for f in parser.feed(stream)] == [1, 2]
@@ -211,4 +211,4 @@ def test_protocol_page_examples_decode():
     flags, _, counts = decode_reading(frames[3].payload, DEFAULT_IDENTITY)
     assert flags == 1 and counts.tolist() == [-30000, 0, 0, 200000, 100000, 1000000]
     assert frames[3].sequence == 42 and frames[3].device_time_us == 7_000_020_000
-    assert decode_status(frames[4].payload) == Status(0, 0, 100, 0)
+    assert decode_status(frames[4].payload) == DeviceStatus(0, 0, 100, 0)

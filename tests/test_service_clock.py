@@ -8,9 +8,9 @@ import datetime as dt
 
 import pytest
 
-from slamtka.drivers.encoder_link import EncoderReading, ReadingHistory
 from slamtka.drivers.kinematics import CArmKinematics, JointReading, PatientSetup, dicom_angles
 from slamtka.drivers.protocol import StatusFlags
+from slamtka.drivers.reading_history import EncoderReading, ReadingHistory
 from slamtka.service.clock import review_pairing
 from slamtka.solver.anatomy import Landmarks
 

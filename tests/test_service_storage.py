@@ -16,7 +16,7 @@ from datetime import UTC, datetime, timedelta
 
 import pytest
 
-from slamtka.bench.hardening import Target, run_items
+from slamtka.bench.hardening import ServiceUnderTest, run_items
 from slamtka.bench.hostile import RawAssociation, frame_dataset_bytes
 from slamtka.service.audit import AuditLog, read_audit, verify_chain
 from slamtka.service.cli import main
@@ -118,12 +118,12 @@ def test_a_short_write_never_leaves_part_of_a_line(tmp_path):
 
 @pytest.fixture
 def target(tmp_path):
-    target = Target(tmp_path, {"max_frames_in_memory": 1, "memory_wait_s": 0.0})
+    target = ServiceUnderTest(tmp_path, {"max_frames_in_memory": 1, "memory_wait_s": 0.0})
     yield target
     target.stop()
 
 
-def _events(target: Target, name: str) -> list[dict]:
+def _events(target: ServiceUnderTest, name: str) -> list[dict]:
     return [e for e in read_audit(target.audit.path) if e["event"] == name]
 
 

@@ -54,14 +54,14 @@ from slamtka.service.frames import XA_IMAGE_STORAGE, decode_frame
 from slamtka.service.scp import DicomReceiver, check_instance
 from slamtka.service.spool import Spool, entry_id
 
-__all__ = ["Target", "ITEMS", "run_items", "add_hardening_bench_parser"]
+__all__ = ["ServiceUnderTest", "ITEMS", "run_items", "add_hardening_bench_parser"]
 
 MEMORY_LIMIT_MB = 256.0
 REFUSALS = ("rejected", "connection_refused", "association_rejected", "association_aborted")
 
 
 @dataclass
-class Target:
+class ServiceUnderTest:
     """A receiver on loopback in its own folder, and what it spooled."""
 
     root: Path
@@ -144,7 +144,7 @@ class PeakRss:
         return (self.peak - self.start) / 1e6
 
 
-def _refused_store(tally: Tally, target: Target, dataset: bytes, uid: str, why: str,
+def _refused_store(tally: Tally, target: ServiceUnderTest, dataset: bytes, uid: str, why: str,
                    context_id: int = 1, command_uid: str | None = None) -> None:
     """One store on a fresh association that must get a failure status (or, for a command
     that cannot be decoded, an A-ABORT)."""
@@ -157,9 +157,9 @@ def _refused_store(tally: Tally, target: Target, dataset: bytes, uid: str, why: 
         tally.count(not exc.aborted, f"{why}: dropped ({exc})")
 
 
-def _with_audit(run: Callable[[Tally, Target, int], None]):
+def _with_audit(run: Callable[[Tally, ServiceUnderTest, int], None]):
     """Every refusal must be audited and the server must still serve afterwards."""
-    def item(target: Target, count: int) -> Tally:
+    def item(target: ServiceUnderTest, count: int) -> Tally:
         tally, before = Tally(), target.refusals()
         run(tally, target, count)
         audited = target.refusals() - before
@@ -177,7 +177,7 @@ def _with_audit(run: Callable[[Tally, Target, int], None]):
 # -- hostile and broken DICOM ------------------------------------------------------------
 
 @_with_audit
-def uids(tally: Tally, target: Target, count: int) -> None:
+def uids(tally: Tally, target: ServiceUnderTest, count: int) -> None:
     cases = uid_cases()
     for i in range(count):
         name, command_uid, dataset_uid = cases[i % len(cases)]
@@ -195,7 +195,7 @@ def uids(tally: Tally, target: Target, count: int) -> None:
 
 
 @_with_audit
-def truncation(tally: Tally, target: Target, count: int) -> None:
+def truncation(tally: Tally, target: ServiceUnderTest, count: int) -> None:
     for explicit in (True, False):
         data, uid = frame_dataset_bytes(1, 16, explicit)
         for cut in truncations(data, max(10, count // 2)):
@@ -204,7 +204,7 @@ def truncation(tally: Tally, target: Target, count: int) -> None:
 
 def _named_cases(make: Callable[[bytes, bool], list[tuple[str, bytes]]], seed: int):
     """An item storing each (name, dataset) case ``make`` builds from a valid frame."""
-    def run(tally: Tally, target: Target, count: int) -> None:
+    def run(tally: Tally, target: ServiceUnderTest, count: int) -> None:
         for explicit in (True, False):
             data, uid = frame_dataset_bytes(seed, 16, explicit)
             for name, mutant in make(data, explicit)[:max(1, count)]:
@@ -217,7 +217,7 @@ element_length = _named_cases(element_length_cases, 3)
 
 
 @_with_audit
-def nesting(tally: Tally, target: Target, count: int) -> None:
+def nesting(tally: Tally, target: ServiceUnderTest, count: int) -> None:
     with PeakRss() as rss:
         for depth in (9, 1000, 10000)[:max(1, count)]:
             for explicit in (True, False):
@@ -240,7 +240,7 @@ def _dropped_or_refused(assoc: RawAssociation, send: Callable[[], int]) -> tuple
 
 
 @_with_audit
-def deflate(tally: Tally, target: Target, count: int) -> None:
+def deflate(tally: Tally, target: ServiceUnderTest, count: int) -> None:
     """1 MB inflating to 1 GiB, on the (refused) deflated context and on an accepted one."""
     bomb = deflate_bomb()
     _, uid = frame_dataset_bytes(5, 16)
@@ -260,7 +260,7 @@ def deflate(tally: Tally, target: Target, count: int) -> None:
 
 
 @_with_audit
-def oversize(tally: Tally, target: Target, count: int) -> None:
+def oversize(tally: Tally, target: ServiceUnderTest, count: int) -> None:
     """A PDU declaring 4 GiB; a dataset streamed as legal PDUs to 512 MiB: both dropped early."""
     _, uid = frame_dataset_bytes(6, 16)
     chunk = bytes(60000)
@@ -305,7 +305,7 @@ def _consistent(path: Path) -> bool:
         return False
 
 
-def fuzz_datasets(target: Target, count: int) -> Tally:
+def fuzz_datasets(target: ServiceUnderTest, count: int) -> Tally:
     """Mutated valid datasets over one association; crashes and inconsistent spool entries."""
     tally = Tally()
     kinds: dict[str, int] = {}
@@ -333,7 +333,7 @@ def fuzz_datasets(target: Target, count: int) -> Tally:
     return tally
 
 
-def fuzz_protocol(target: Target, count: int) -> Tally:
+def fuzz_protocol(target: ServiceUnderTest, count: int) -> Tally:
     """Malformed PDUs, each on a fresh connection; the server must keep serving."""
     tally = Tally()
     for kind, data, after in malformed_pdus(count, seed=11):
@@ -359,7 +359,7 @@ def fuzz_protocol(target: Target, count: int) -> Tally:
 
 # -- who may talk to it ------------------------------------------------------------------
 
-def admission(target: Target, count: int) -> Tally:
+def admission(target: ServiceUnderTest, count: int) -> Tally:
     """Wrong calling/called AE, a source address off the list, per-peer and association caps."""
     tally = Tally()
     for _ in range(max(1, count)):
@@ -396,7 +396,7 @@ def admission(target: Target, count: int) -> Tally:
     return tally
 
 
-def tls_matrix(target: Target, count: int, pki: dict) -> Tally:
+def tls_matrix(target: ServiceUnderTest, count: int, pki: dict) -> Tally:
     """No certificate, wrong CA, expired, TLS 1.1, plain TCP: refused and audited."""
     tally = Tally()
 
@@ -424,7 +424,7 @@ def tls_matrix(target: Target, count: int, pki: dict) -> Tally:
     return tally
 
 
-def idle_flood(target: Target, count: int, idle: int = 200, busy: int = 50,
+def idle_flood(target: ServiceUnderTest, count: int, idle: int = 200, busy: int = 50,
                bound_s: float = 2.0) -> Tally:
     """``idle`` silent sockets and ``busy`` hammering clients; the C-arm associates in time."""
     tally, stop = Tally(), threading.Event()
@@ -488,7 +488,7 @@ def file_size_limit(limit: int) -> Iterator[None]:
         signal.signal(signal.SIGXFSZ, previous)
 
 
-def disk_full(target: Target, count: int) -> Tally:
+def disk_full(target: ServiceUnderTest, count: int) -> Tally:
     """While writes fail: 0xA700, nothing spooled, no partial file; then the same stores succeed."""
     tally = Tally()
     frames = [frame_dataset_bytes(100 + i, 512) for i in range(max(1, count))]
@@ -515,7 +515,7 @@ ITEMS = ("uids", "truncation", "pixel_length", "element_length", "nesting", "def
 
 
 def _receiver_item(name: str, folder: Path, count: int, bound_s: float) -> Tally:
-    """One receiver item against a fresh :class:`Target` in ``folder``."""
+    """One receiver item against a fresh :class:`ServiceUnderTest` in ``folder``."""
     simple = {"uids": uids, "truncation": truncation, "pixel_length": pixel_length,
               "element_length": element_length, "nesting": nesting, "deflate": deflate,
               "oversize": oversize, "fuzz_datasets": fuzz_datasets, "fuzz_protocol": fuzz_protocol,
@@ -528,7 +528,7 @@ def _receiver_item(name: str, folder: Path, count: int, bound_s: float) -> Tally
         pki = make_pki(folder / "pki")
         dicom = {"tls": {"enabled": True, "certificate": str(pki["server_cert"]),
                          "private_key": str(pki["server_key"]), "ca_certificates": str(pki["ca"])}}
-    target = Target(folder, dicom)
+    target = ServiceUnderTest(folder, dicom)
     try:
         if name == "tls":
             return tls_matrix(target, count, pki)

@@ -35,7 +35,8 @@ import numpy as np
 import serial
 
 from slamtka.drivers.carm_sim import FaultSpec, MotionScript, SimulatedCArm
-from slamtka.drivers.encoder_link import EncoderLink, EncoderReading, LinkConfig, LinkState
+from slamtka.drivers.encoder_link import EncoderLink, LinkConfig, LinkState
+from slamtka.drivers.reading_history import EncoderReading
 
 # How long the bench waits for a link event before counting it as never having come. The
 # figures are measured from the events' own timestamps and have their own targets, so this
@@ -217,8 +218,8 @@ def bench_corruption(target_corrupted: int, rate_hz: int, faults: str, seed: int
         "clean_frames": int(clean.sum()), "clean_frames_lost": int(lost.sum()),
         "max_clean_frames_lost_in_a_row": int(runs.max()) if runs.size else 0,
         "parser": vars(stats.parser),
-        "rejected": {"malformed": stats.rejected_malformed, "range": stats.rejected_range,
-                     "rate": stats.rejected_rate, "duplicate": stats.rejected_duplicate},
+        "rejected": {"malformed": stats.rejected.malformed, "range": stats.rejected.range,
+                     "rate": stats.rejected.rate, "duplicate": stats.rejected.duplicate},
     }
 
 

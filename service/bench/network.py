@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from pydicom.uid import JPEG2000Lossless, JPEGLSNearLossless, generate_uid
 
-from slamtka.bench.hardening import Tally, Target
+from slamtka.bench.hardening import ServiceUnderTest, Tally
 from slamtka.bench.hostile import Dropped, RawAssociation, noise_frame, wire_bytes
 from slamtka.bench.pki import client_context, make_pki
 from slamtka.service.audit import AuditLog, read_audit
@@ -41,7 +41,7 @@ NETWORK_ITEMS = ("tls_names", "ae_squatting", "compressed", "pixel_layouts")
 CARM = "127.0.0.1"
 
 
-def _events(target: Target, event: str) -> list[dict]:
+def _events(target: ServiceUnderTest, event: str) -> list[dict]:
     return [e for e in read_audit(target.audit.path) if e["event"] == event]
 
 
@@ -95,7 +95,7 @@ def tls_names(folder: Path, count: int) -> Tally:
             tally.count(received != (1 if deliver else 0), f"{name}: {received} delivered")
             if error:
                 reasons[name] = error
-    target = Target(folder / "scp", {
+    target = ServiceUnderTest(folder / "scp", {
         "tls": {"enabled": True, "certificate": str(pki["server_cert"]),
                 "private_key": str(pki["server_key"]), "ca_certificates": str(pki["ca"])},
         "callers": [{"ae_title": "CARM1", "addresses": [CARM],
@@ -123,7 +123,7 @@ def tls_names(folder: Path, count: int) -> Tally:
 
 def ae_squatting(folder: Path, count: int, squatters: int = 6) -> Tally:
     tally = Tally()
-    target = Target(folder, {"allowed_calling_ae_titles": ["CARM1", "CARM2"],
+    target = ServiceUnderTest(folder, {"allowed_calling_ae_titles": ["CARM1", "CARM2"],
                              "callers": [{"ae_title": "CARM1", "addresses": [CARM]}]})
     held_most = 0
     try:
@@ -168,7 +168,7 @@ def ae_squatting(folder: Path, count: int, squatters: int = 6) -> Tally:
 
 def compressed(folder: Path, count: int, size: int = 256) -> Tally:
     tally = Tally()
-    target = Target(folder)
+    target = ServiceUnderTest(folder)
     worst: dict[str, int] = {}
     try:
         for i in range(max(1, count)):
@@ -209,7 +209,7 @@ def compressed(folder: Path, count: int, size: int = 256) -> Tally:
 
 def pixel_layouts(folder: Path, count: int) -> Tally:
     tally = Tally()
-    target = Target(folder)
+    target = ServiceUnderTest(folder)
     try:
         assoc = RawAssociation(target.port).associate()
         for i in range(max(1, count)):

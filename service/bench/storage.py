@@ -40,7 +40,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from slamtka.bench.faults import CArmClient, SmallCase, running_theatre, small_case
-from slamtka.bench.hardening import PeakRss, Tally, Target
+from slamtka.bench.hardening import PeakRss, ServiceUnderTest, Tally
 from slamtka.bench.hostile import RawAssociation, dataset_bytes, noise_frame
 from slamtka.service.atomic_files import TEMP_PREFIX
 from slamtka.service.audit import read_audit, verify_chain
@@ -224,7 +224,7 @@ def damaged_spool(root: Path, count: int) -> Tally:
     return tally
 
 
-def uid_conflict(target: Target, count: int) -> Tally:
+def uid_conflict(target: ServiceUnderTest, count: int) -> Tally:
     tally = Tally()
     assoc = RawAssociation(target.port).associate()
     for k in range(count):
@@ -300,7 +300,7 @@ def _send_burst(port: int, frames: int, side: int, parallel: int, refused) -> No
 def _burst(root: Path, cap: int, frames: int, side: int, parallel: int) -> tuple[float, int]:
     """Peak RSS growth (MB) of a receiver while ``parallel`` associations store ``frames``
     frames of ``side`` x ``side``; the number of stores refused (and retried)."""
-    target = Target(root, {"max_frames_in_memory": cap, "max_associations": parallel,
+    target = ServiceUnderTest(root, {"max_frames_in_memory": cap, "max_associations": parallel,
                            "max_associations_per_address": parallel,
                            "max_message_bytes": 4 * side * side + (1 << 20)})
     fork = multiprocessing.get_context("fork")
@@ -410,7 +410,7 @@ def run_storage_item(name: str, root: Path, count: int) -> Tally:
     second starts or frames (burst_memory). A failed whole-service item keeps the end of
     the service's log (the bench's folder is temporary)."""
     if name == "uid_conflict":
-        target = Target(root)
+        target = ServiceUnderTest(root)
         try:
             return uid_conflict(target, count)
         finally:
