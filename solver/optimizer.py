@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -107,6 +107,22 @@ class Term(Protocol):
     loss: RobustLoss
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization: ...
+
+
+@runtime_checkable
+class Corresponding(Protocol):
+    """A term whose residuals pair model and observation (a silhouette with its contour):
+    it chooses the pairing at a state, and holds it until asked again."""
+
+    def correspond(self, state: State) -> None: ...
+
+
+def correspond(terms: list[Term], state: State) -> None:
+    """The correspondence step at ``state``, taken before each linearisation with Jacobians
+    (once per iteration): every :class:`Corresponding` term chooses its pairing there."""
+    for term in terms:
+        if isinstance(term, Corresponding):
+            term.correspond(state)
 
 
 @dataclass(frozen=True)
@@ -298,6 +314,7 @@ def levenberg_marquardt(
     start = time.perf_counter()
     P, X = len(state.poses), len(state.points)
     free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    correspond(terms, state)
     lins, costs = _evaluate(terms, state, jacobians=True)
     cost = sum(costs.values())
     history = [cost]
@@ -333,6 +350,7 @@ def levenberg_marquardt(
         if np.max(np.abs(d_p)) < options.step_tolerance:
             converged, reason = True, "pose step below tolerance"
             break
+        correspond(terms, state)
         lins, costs = _evaluate(terms, state, jacobians=True)
         cost = sum(costs.values())
     return state, SolveReport(converged, reason, iteration, cost, costs,
@@ -366,6 +384,7 @@ def pose_covariance(
     ``A C A^T``.
     """
     P, X = len(state.poses), len(state.points)
+    correspond(terms, state)
     lins, _ = _evaluate(terms, state, jacobians=True)
     ne = build_normal_equations(terms, lins, P, X)
     S, _, V_inv = _reduced_system(ne, P, 0.0)

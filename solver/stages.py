@@ -23,6 +23,7 @@ from slamtka.solver.optimizer import (
     SolveReport,
     State,
     Term,
+    correspond,
     levenberg_marquardt,
 )
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -145,7 +146,9 @@ class StageRunner:
                                       c.gates.max_coarse_bone_median_px, c.gates)
         if astray is not None:
             # Lost already: the caller may restart from a global search at once.
-            return StagesResult(state, list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight())), SolveReport(
+            final = list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight()))
+            correspond(final, state)
+            return StagesResult(state, final, SolveReport(
                 False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])), True
         p, swapped = p.relabelled(state.poses)
         self.problem = p
@@ -158,6 +161,7 @@ class StageRunner:
         terms = self.problem.silhouette_terms(stage.labels, 1.0, self._tight(),
                                               thinned=stage.thinned) + self._odometry(stage)
         if stage.budget is None:
+            correspond(terms, result.state)
             return StagesResult(result.state, terms, result.report)
         state, report = self.lm(terms, result.state, self._held(stage), self._options(stage),
                                 stage.name)

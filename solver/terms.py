@@ -30,7 +30,7 @@ from slamtka.solver.optimizer import Linearization, RobustLoss, State
 from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
 
-__all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
+__all__ = ["Correspondence", "ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
            "pose_increments", "projected"]
 
 
@@ -160,22 +160,32 @@ class BackProjectionTerm:
         return Linearization(r, [], (self.point_ids, J))
 
 
+@dataclass(frozen=True)
+class Correspondence:
+    """What a silhouette term pairs at one linearisation point: its traced outline (model
+    frame) and, per observed contour pixel, the outline point nearest it."""
+
+    outline: np.ndarray  # (S, 3)
+    nearest: np.ndarray | None  # (M,) indices into ``outline``; None for an empty outline
+
+
 @dataclass
 class ModelProjectionTerm:
     """E_mp: the projected model silhouette and the observed contour lie on each other.
 
-    The silhouette is traced when Jacobians are requested (once per optimiser iteration)
-    and its model-frame points are held while steps are tried, the usual fixed-
-    correspondence approximation (tracing is the expensive part). With ``freeze_outline``
-    it is traced once and then held, for a final refinement that starts from converged
-    silhouettes: that problem is smooth, so its convergence tests are meaningful.
+    The silhouette and its pairing with the observed pixels (:class:`Correspondence`) are
+    chosen by :meth:`correspond`, the explicit correspondence step the optimiser takes once
+    per iteration (tracing is the expensive part), and held while steps are tried, the usual
+    fixed-correspondence approximation. With ``freeze_outline`` the outline is traced at the
+    first step and then held (only the pairing is chosen again), for a final refinement that
+    starts from converged silhouettes: that problem is smooth, so its convergence tests are
+    meaningful.
 
     Two-sided, so that neither can be ignored: every silhouette point inside the field of
     view is charged its distance to the observed contour (distance map), and every observed
     contour pixel its distance to the nearest projected silhouette point. A one-sided cost
-    could be lowered by sliding the model out of the field of view. The nearest points are
-    searched when Jacobians are requested and held while steps are tried: a held pairing
-    can only overstate a trial's cost, so a step accepted on it is a true decrease.
+    could be lowered by sliding the model out of the field of view. A held pairing can only
+    overstate a trial's cost, so a step accepted on it is a true decrease.
     """
 
     name: str
@@ -191,17 +201,17 @@ class ModelProjectionTerm:
     weight: float = 1.0
     loss: RobustLoss = RobustLoss("cauchy", 3.0)
     freeze_outline: bool = False
-    _outline: np.ndarray | None = field(default=None, init=False, repr=False)
+    correspondence: Correspondence | None = field(default=None, init=False, repr=False)
+    # The footprint that tells the outer outline from interior folds, and the pose it was
+    # rasterised at: a cache of :meth:`correspond`, redone once the model has moved enough.
     _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
-    _nearest: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def _T_cam_body(self, state: State) -> Pose:
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
     def _trace(self, T_cam_body: Pose) -> np.ndarray:
-        """Model-frame outline points; the footprint interior that tells the outer outline
-        from interior folds is rasterised again only once the model has moved enough."""
+        """Model-frame outline points at ``T_cam_body``."""
         interior = None
         if self.outer_only:
             if self._interior is None or self.contour.image_motion_px(
@@ -211,20 +221,32 @@ class ModelProjectionTerm:
         return self.contour.outline_points(T_cam_body, self.camera, self.spacing_px,
                                            outer_only=self.outer_only, interior=interior)
 
+    def correspond(self, state: State) -> None:
+        """The correspondence step at ``state``: the outline traced (unless frozen and
+        traced already) and each observed pixel paired with its nearest outline point."""
+        T_cam_body = self._T_cam_body(state)
+        held = self.correspondence
+        S = held.outline if held is not None and self.freeze_outline else self._trace(T_cam_body)
+        nearest = None
+        if len(S):
+            # Binned at twice the outline's spacing: a few points per occupied cell.
+            uv = self.camera.project(T_cam_body.apply(S))
+            nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
+        self.correspondence = Correspondence(S, nearest)
+
     def distances_px(self, state: State) -> tuple[np.ndarray, np.ndarray]:
         """Pixel distances of the outline traced at ``state`` to the observed contour, and of
         each observed contour pixel to the outline (the two sides of the residual)."""
-        self._outline = None
+        self.correspond(state)
         r = np.abs(self.linearize(state, jacobians=False).residuals[:, 0]) * self.sigma_px
         return r[: len(r) - len(self.observed)], r[len(r) - len(self.observed):]
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
+        if self.correspondence is None:
+            raise RuntimeError("a silhouette term is linearised after its correspondence step")
         T_cam_body = self._T_cam_body(state)
-        if self._outline is None or (jacobians and not self.freeze_outline):
-            self._outline = self._trace(T_cam_body)
-            self._nearest = None
-        S = self._outline
-        if len(S) == 0:
+        S, nearest = self.correspondence.outline, self.correspondence.nearest
+        if nearest is None:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)
             return Linearization(r)
@@ -234,10 +256,6 @@ class ModelProjectionTerm:
         else:
             uv = self.camera.project(p_cam)
         dist, grad = self.distance_map.query(uv)
-        if jacobians or self._nearest is None:
-            # Binned at twice the outline's spacing: a few points per occupied cell.
-            self._nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
-        nearest = self._nearest
         offset = uv[nearest] - self.observed
         nearest_dist = row_norms(offset)
         r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px

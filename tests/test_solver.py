@@ -27,7 +27,9 @@ def _linearized_problem(plan, seed=0):
 
     terms = problem.edge_terms(points, groups) + problem.silhouette_terms(
         ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0)) + problem.odometry_terms(case.initial)
-    return case, problem, State(poses, points), terms
+    state = State(poses, points)
+    optimizer.correspond(terms, state)  # the silhouettes paired with their contours, then held
+    return case, problem, state, terms
 
 
 def test_analytic_jacobians_match_finite_differences(real_plan):
