@@ -10,7 +10,7 @@ import numpy as np
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.observations import LABELS
-from slamtka.solver.optimizer import RobustLoss, State, Term
+from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.terms import BackProjectionTerm
 
@@ -95,7 +95,7 @@ def residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int
     sums: dict[str, list[float]] = {}
     total = 0
     for term in terms:
-        r = term.linearize(state, jacobians=False).residuals
+        r = whitened(term, state, jacobians=False).residuals
         acc = sums.setdefault(term.name, [0.0, 0])
         acc[0] += float(np.sum(r**2))
         acc[1] += r.shape[0]

@@ -27,7 +27,11 @@ __all__ = [
     "State",
     "Linearization",
     "RobustLoss",
+    "NoiseModel",
     "Term",
+    "Corresponding",
+    "correspond",
+    "whitened",
     "LMOptions",
     "IterationInfo",
     "SolveReport",
@@ -88,7 +92,9 @@ class RobustLoss:
 
 @dataclass
 class Linearization:
-    """Whitened residuals (N, m) of one term with the Jacobians of the variables they touch.
+    """Residuals (N, m) of one term with the Jacobians of the variables they touch: in the
+    term's own units as the term returns them, whitened once its :class:`NoiseModel` has
+    been applied (:func:`whitened`).
 
     ``pose_jacobians`` holds ``(pose index, (N, m, 6))`` for each pose the term touches;
     ``point_jacobian`` holds ``(point ids (N,), (N, m, 3))``, one distinct point per residual
@@ -99,14 +105,45 @@ class Linearization:
     point_jacobian: tuple[np.ndarray, np.ndarray] | None = None
 
 
+@dataclass(frozen=True)
+class NoiseModel:
+    """How the optimiser charges a term's residuals: divided by ``sigma`` (one for every
+    component, or one per component of a residual block), under a robust ``loss`` and
+    scaled by ``weight``."""
+
+    sigma: float | tuple[float, ...]
+    loss: RobustLoss = RobustLoss("l2", 1.0)
+    weight: float = 1.0
+
+    def whiten(self, lin: Linearization) -> Linearization:
+        """``lin`` in units of its sigmas. (Per-component sigmas scale the pose Jacobians by
+        their reciprocals, the others divide: the floating-point order the terms used when
+        they whitened themselves, which the solver's covariance reproduces to the last bit.)"""
+        point = lin.point_jacobian
+        if isinstance(self.sigma, tuple):
+            sigma = np.asarray(self.sigma)
+            column = sigma[:, None]
+            return Linearization(
+                lin.residuals / sigma, [(a, J * (1.0 / column)) for a, J in lin.pose_jacobians],
+                None if point is None else (point[0], point[1] / column))
+        return Linearization(
+            lin.residuals / self.sigma, [(a, J / self.sigma) for a, J in lin.pose_jacobians],
+            None if point is None else (point[0], point[1] / self.sigma))
+
+
 class Term(Protocol):
-    """One energy term: ``weight * sum(loss.rho(|r_i|^2))``."""
+    """One energy term: ``weight * sum(loss.rho(|r_i / sigma|^2))`` with its ``noise``;
+    it returns its residuals in its own units and the optimiser whitens them."""
 
     name: str
-    weight: float
-    loss: RobustLoss
+    noise: NoiseModel
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization: ...
+
+
+def whitened(term: Term, state: State, jacobians: bool = True) -> Linearization:
+    """The term's residuals (and Jacobians) at ``state`` in units of its sigmas."""
+    return term.noise.whiten(term.linearize(state, jacobians))
 
 
 @runtime_checkable
@@ -159,11 +196,11 @@ class SolveReport:
 
 def _term_cost(term: Term, lin: Linearization) -> float:
     s = np.sum(lin.residuals**2, axis=1)
-    return float(term.weight * np.sum(term.loss.rho(s)))
+    return float(term.noise.weight * np.sum(term.noise.loss.rho(s)))
 
 
 def _evaluate(terms: list[Term], state: State, jacobians: bool):
-    lins = [t.linearize(state, jacobians) for t in terms]
+    lins = [whitened(t, state, jacobians) for t in terms]
     costs = {}
     for term, lin in zip(terms, lins):
         costs[term.name] = costs.get(term.name, 0.0) + _term_cost(term, lin)
@@ -228,7 +265,7 @@ def build_normal_equations(
     coupling_keys, coupling_vals = [], []
     for term, lin in zip(terms, lins):
         s = np.sum(lin.residuals**2, axis=1)
-        w = term.weight * term.loss.weight(s)  # (N,)
+        w = term.noise.weight * term.noise.loss.weight(s)  # (N,)
         wr = (w[:, None] * lin.residuals).reshape(-1)  # (N*m,)
         sqrt_w = np.sqrt(w)[:, None, None]
         weighted = [(a, (sqrt_w * Ja).reshape(-1, 6)) for a, Ja in lin.pose_jacobians]
@@ -399,7 +436,7 @@ def pose_covariance(
     for term in shared.terms:
         term, lin = by_term[id(term)]
         x_idx, Jx = lin.point_jacobian
-        w = term.weight * term.loss.weight(np.sum(lin.residuals**2, axis=1))
+        w = term.noise.weight * term.noise.loss.weight(np.sum(lin.residuals**2, axis=1))
         ids.append(x_idx)
         b.append(w[:, None] * Jx[:, 0, :])
     ids, b = np.concatenate(ids), np.concatenate(b)

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation
-from slamtka.solver.optimizer import RobustLoss, Term
+from slamtka.solver.optimizer import NoiseModel, RobustLoss, Term
 from slamtka.solver.plan import Plan, RigidModel
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.solver_config import SolverConfig
@@ -24,6 +24,8 @@ __all__ = ["EdgeGroup", "InitialGuess", "JointProblem", "thin_contour"]
 # sightings meet and gains more than a millimetre (JointProblem.relabelled).
 _SWAP_GAIN = 0.5
 _SWAP_MIN_MM = 1.0
+# Edge points' robust loss (in sigmas): a stray point pulls with a constant force.
+_EDGE_LOSS = RobustLoss("huber", 2.0)
 
 
 @dataclass(frozen=True)
@@ -221,9 +223,9 @@ class JointProblem:
                      else self.model(label).contour),
                     view.distance_map(label),
                     (self.coarse_pixels if thinned else self.pixels)[k, label],
-                    c.noise.sigma_px, c.sampling.silhouette_spacing_px * thinning,
-                    outer_only=(label == "bone"), weight=weight, loss=loss,
-                    freeze_outline=freeze_outline))
+                    NoiseModel(c.noise.sigma_px, loss, weight),
+                    c.sampling.silhouette_spacing_px * thinning,
+                    outer_only=(label == "bone"), freeze_outline=freeze_outline))
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:
@@ -234,21 +236,23 @@ class JointProblem:
         sigma_rad, sigma_mm = initial.odometry_sigma
         anchor = self.plan.landmarks.T_tibia_anat()
         first = initial.T_cam_tibia[0]
-        return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, sigma_rad, sigma_mm)
+        noise = NoiseModel((sigma_mm,) * 3 + (sigma_rad,) * 3)
+        return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, noise)
                 for k, T in enumerate(initial.T_cam_tibia) if k > 0]
 
     def edge_terms(self, points: np.ndarray, groups: dict[tuple[int, str], EdgeGroup]
                    ) -> list[Term]:
         """E_rp and E_bp of the edge points ``points`` seated by :meth:`seated_points`."""
-        c = self.config
+        c = self.config.noise
         terms: list[Term] = []
         for (k, label), group in groups.items():
             terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
-                                          group.pixels, group.ids, c.noise.sigma_px, c.noise.w_rp))
-            sigma_mm = c.noise.sigma_mm if label == "bone" else c.noise.pin_sigma_mm
-            terms.append(BackProjectionTerm("E_bp", self.model(label).sdf, group.ids, sigma_mm,
-                                            group.directions, points[group.ids],
-                                            c.noise.sigma_depth_mm, c.noise.w_bp, view=k,
-                                            body=self.body_index(label)))
+                                          group.pixels, group.ids,
+                                          NoiseModel(c.sigma_px, _EDGE_LOSS, c.w_rp)))
+            sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
+            terms.append(BackProjectionTerm(
+                "E_bp", self.model(label).sdf, group.ids, group.directions, points[group.ids],
+                NoiseModel((sigma_mm, c.sigma_depth_mm), _EDGE_LOSS, c.w_bp), view=k,
+                body=self.body_index(label)))
         return terms
 

@@ -37,13 +37,14 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
     n_poses = len(state.poses)
     checked = set()
     for term in terms:
-        lin = term.linearize(state)
+        lin = optimizer.whitened(term, state)
         for p, J in lin.pose_jacobians:
             for dof in range(6):
                 eps = 1e-7
                 d = np.zeros((n_poses, 6))
                 d[p, dof] = eps
-                moved = term.linearize(state.retract(d.ravel(), np.zeros_like(state.points)), False)
+                moved = optimizer.whitened(term, state.retract(d.ravel(), np.zeros_like(state.points)),
+                                           False)
                 if moved.residuals.shape != lin.residuals.shape:
                     continue  # the traced silhouette changed: not comparable
                 fd = (moved.residuals - lin.residuals) / eps
@@ -58,7 +59,7 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
                 eps = 1e-6
                 d = np.zeros_like(state.points)
                 d[ids, dof] = eps
-                moved = term.linearize(state.retract(np.zeros(6 * n_poses), d), False)
+                moved = optimizer.whitened(term, state.retract(np.zeros(6 * n_poses), d), False)
                 fd = (moved.residuals - lin.residuals) / eps
                 err = np.abs(fd - J[:, :, dof])
                 assert np.mean(err < 1e-3 * (1 + np.abs(J[:, :, dof]))) > 0.97, (term.name, dof)
@@ -92,7 +93,7 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
     points, groups = problem.seated_points(truth)
     state = State(truth, points)
     # Least squares: a robust loss's weights would move with the residuals, not the response.
-    terms = [replace(t, loss=RobustLoss("l2"))
+    terms = [replace(t, noise=replace(t.noise, loss=RobustLoss("l2")))
              for t in problem.edge_terms(points, groups) + problem.odometry_terms(case.initial)]
     fixed = problem.fixed_dofs()
     bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
@@ -139,7 +140,7 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
     pin_rp = next(t for t in terms if t.name == "E_rp" and t.body is not None)
 
     def couplings(term_list):
-        lins = [t.linearize(state) for t in term_list]
+        lins = [optimizer.whitened(t, state) for t in term_list]
         ne = optimizer.build_normal_equations(term_list, lins, P, X)
         assert np.all(np.diff(ne.pair_point * P + ne.pair_pose) > 0)  # one block per pair
         return {(int(x), int(a)): block for x, a, block in zip(ne.pair_point, ne.pair_pose, ne.H_px)}
@@ -154,7 +155,7 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
 def test_schur_step_equals_the_dense_solution(real_plan):
     _, problem, state, terms = _linearized_problem(real_plan)
     P, X = len(state.poses), len(state.points)
-    lins = [t.linearize(state) for t in terms]
+    lins = [optimizer.whitened(t, state) for t in terms]
     ne = optimizer.build_normal_equations(terms, lins, P, X)
     free = ~problem.fixed_dofs()
     lam = 1e-3
@@ -307,11 +308,12 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     problem = JointProblem(real_plan, case.views, SolverConfig())
     (term,) = problem.odometry_terms(case.initial)
     state = State(tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin), np.zeros((0, 3)))
-    assert np.allclose(term.linearize(state, False).residuals, 0.0, atol=1e-9)
+    assert np.allclose(optimizer.whitened(term, state, False).residuals, 0.0, atol=1e-9)
     # Moving one view by the encoder sigma about the knee costs one sigma.
     anchor = real_plan.landmarks.T_tibia_anat()
-    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, term.sigma_rad]) @ anchor.inverse()
-    r = term.linearize(State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
+    sigma_rad = term.noise.sigma[5]
+    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, sigma_rad]) @ anchor.inverse()
+    r = optimizer.whitened(term, State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
     assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
 
 
