@@ -116,24 +116,33 @@ class NoiseModel:
     weight: float = 1.0
 
     def whiten(self, lin: Linearization) -> Linearization:
-        """``lin`` in units of its sigmas. (Per-component sigmas scale the pose Jacobians by
-        their reciprocals, the others divide: the floating-point order the terms used when
-        they whitened themselves, which the solver's covariance reproduces to the last bit.)"""
-        point = lin.point_jacobian
+        """``lin`` in units of its sigmas, whitened in place (terms return fresh arrays).
+        Per-component sigmas scale the pose Jacobians by their reciprocals, the others
+        divide: the floating-point order of the terms when they whitened themselves, which
+        the solver's covariance reproduces to the last bit."""
+        point = None if lin.point_jacobian is None else lin.point_jacobian[1]
         if isinstance(self.sigma, tuple):
             sigma = np.asarray(self.sigma)
+            lin.residuals /= sigma
             column = sigma[:, None]
-            return Linearization(
-                lin.residuals / sigma, [(a, J * (1.0 / column)) for a, J in lin.pose_jacobians],
-                None if point is None else (point[0], point[1] / column))
-        return Linearization(
-            lin.residuals / self.sigma, [(a, J / self.sigma) for a, J in lin.pose_jacobians],
-            None if point is None else (point[0], point[1] / self.sigma))
+            reciprocal = 1.0 / column
+            for _, J in lin.pose_jacobians:
+                J *= reciprocal
+            if point is not None:
+                point /= column
+            return lin
+        lin.residuals /= self.sigma
+        for _, J in lin.pose_jacobians:
+            J /= self.sigma
+        if point is not None:
+            point /= self.sigma
+        return lin
 
 
 class Term(Protocol):
     """One energy term: ``weight * sum(loss.rho(|r_i / sigma|^2))`` with its ``noise``;
-    it returns its residuals in its own units and the optimiser whitens them."""
+    it returns its residuals in its own units, in arrays of its own (the optimiser
+    whitens them in place)."""
 
     name: str
     noise: NoiseModel
@@ -157,9 +166,17 @@ class Corresponding(Protocol):
 def correspond(terms: list[Term], state: State) -> None:
     """The correspondence step at ``state``, taken before each linearisation with Jacobians
     (once per iteration): every :class:`Corresponding` term chooses its pairing there."""
+    _correspond(_corresponding(terms), state)
+
+
+def _corresponding(terms: list[Term]) -> list[Corresponding]:
+    """The terms that take a correspondence step (a protocol check is slow: done once)."""
+    return [term for term in terms if isinstance(term, Corresponding)]
+
+
+def _correspond(terms: list[Corresponding], state: State) -> None:
     for term in terms:
-        if isinstance(term, Corresponding):
-            term.correspond(state)
+        term.correspond(state)
 
 
 @dataclass(frozen=True)
@@ -351,7 +368,8 @@ def levenberg_marquardt(
     start = time.perf_counter()
     P, X = len(state.poses), len(state.points)
     free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
-    correspond(terms, state)
+    corresponding = _corresponding(terms)
+    _correspond(corresponding, state)
     lins, costs = _evaluate(terms, state, jacobians=True)
     cost = sum(costs.values())
     history = [cost]
@@ -387,7 +405,7 @@ def levenberg_marquardt(
         if np.max(np.abs(d_p)) < options.step_tolerance:
             converged, reason = True, "pose step below tolerance"
             break
-        correspond(terms, state)
+        _correspond(corresponding, state)
         lins, costs = _evaluate(terms, state, jacobians=True)
         cost = sum(costs.values())
     return state, SolveReport(converged, reason, iteration, cost, costs,
