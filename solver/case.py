@@ -26,7 +26,7 @@ from slamtka.solver.imaging import calibration_file
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.observations import LABELS, ViewObservation
 from slamtka.solver.plan import Plan
-from slamtka.solver.slam import InitialGuess
+from slamtka.solver.problem import InitialGuess
 
 __all__ = ["CaseFolder", "CASE_FORMAT", "load_case", "write_case"]
 

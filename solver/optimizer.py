@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -27,7 +27,11 @@ __all__ = [
     "State",
     "Linearization",
     "RobustLoss",
+    "NoiseModel",
     "Term",
+    "Corresponding",
+    "correspond",
+    "whitened",
     "LMOptions",
     "IterationInfo",
     "SolveReport",
@@ -88,7 +92,9 @@ class RobustLoss:
 
 @dataclass
 class Linearization:
-    """Whitened residuals (N, m) of one term with the Jacobians of the variables they touch.
+    """Residuals (N, m) of one term with the Jacobians of the variables they touch: in the
+    term's own units as the term returns them, whitened once its :class:`NoiseModel` has
+    been applied (:func:`whitened`).
 
     ``pose_jacobians`` holds ``(pose index, (N, m, 6))`` for each pose the term touches;
     ``point_jacobian`` holds ``(point ids (N,), (N, m, 3))``, one distinct point per residual
@@ -99,14 +105,78 @@ class Linearization:
     point_jacobian: tuple[np.ndarray, np.ndarray] | None = None
 
 
+@dataclass(frozen=True)
+class NoiseModel:
+    """How the optimiser charges a term's residuals: divided by ``sigma`` (one for every
+    component, or one per component of a residual block), under a robust ``loss`` and
+    scaled by ``weight``."""
+
+    sigma: float | tuple[float, ...]
+    loss: RobustLoss = RobustLoss("l2", 1.0)
+    weight: float = 1.0
+
+    def whiten(self, lin: Linearization) -> Linearization:
+        """``lin`` in units of its sigmas, whitened in place (terms return fresh arrays).
+        Per-component sigmas scale the pose Jacobians by their reciprocals, the others
+        divide: the floating-point order of the terms when they whitened themselves, which
+        the solver's covariance reproduces to the last bit."""
+        point = None if lin.point_jacobian is None else lin.point_jacobian[1]
+        if isinstance(self.sigma, tuple):
+            sigma = np.asarray(self.sigma)
+            lin.residuals /= sigma
+            column = sigma[:, None]
+            reciprocal = 1.0 / column
+            for _, J in lin.pose_jacobians:
+                J *= reciprocal
+            if point is not None:
+                point /= column
+            return lin
+        lin.residuals /= self.sigma
+        for _, J in lin.pose_jacobians:
+            J /= self.sigma
+        if point is not None:
+            point /= self.sigma
+        return lin
+
+
 class Term(Protocol):
-    """One energy term: ``weight * sum(loss.rho(|r_i|^2))``."""
+    """One energy term: ``weight * sum(loss.rho(|r_i / sigma|^2))`` with its ``noise``;
+    it returns its residuals in its own units, in arrays of its own (the optimiser
+    whitens them in place)."""
 
     name: str
-    weight: float
-    loss: RobustLoss
+    noise: NoiseModel
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization: ...
+
+
+def whitened(term: Term, state: State, jacobians: bool = True) -> Linearization:
+    """The term's residuals (and Jacobians) at ``state`` in units of its sigmas."""
+    return term.noise.whiten(term.linearize(state, jacobians))
+
+
+@runtime_checkable
+class Corresponding(Protocol):
+    """A term whose residuals pair model and observation (a silhouette with its contour):
+    it chooses the pairing at a state, and holds it until asked again."""
+
+    def correspond(self, state: State) -> None: ...
+
+
+def correspond(terms: list[Term], state: State) -> None:
+    """The correspondence step at ``state``, taken before each linearisation with Jacobians
+    (once per iteration): every :class:`Corresponding` term chooses its pairing there."""
+    _correspond(_corresponding(terms), state)
+
+
+def _corresponding(terms: list[Term]) -> list[Corresponding]:
+    """The terms that take a correspondence step (a protocol check is slow: done once)."""
+    return [term for term in terms if isinstance(term, Corresponding)]
+
+
+def _correspond(terms: list[Corresponding], state: State) -> None:
+    for term in terms:
+        term.correspond(state)
 
 
 @dataclass(frozen=True)
@@ -143,11 +213,11 @@ class SolveReport:
 
 def _term_cost(term: Term, lin: Linearization) -> float:
     s = np.sum(lin.residuals**2, axis=1)
-    return float(term.weight * np.sum(term.loss.rho(s)))
+    return float(term.noise.weight * np.sum(term.noise.loss.rho(s)))
 
 
 def _evaluate(terms: list[Term], state: State, jacobians: bool):
-    lins = [t.linearize(state, jacobians) for t in terms]
+    lins = [whitened(t, state, jacobians) for t in terms]
     costs = {}
     for term, lin in zip(terms, lins):
         costs[term.name] = costs.get(term.name, 0.0) + _term_cost(term, lin)
@@ -212,7 +282,7 @@ def build_normal_equations(
     coupling_keys, coupling_vals = [], []
     for term, lin in zip(terms, lins):
         s = np.sum(lin.residuals**2, axis=1)
-        w = term.weight * term.loss.weight(s)  # (N,)
+        w = term.noise.weight * term.noise.loss.weight(s)  # (N,)
         wr = (w[:, None] * lin.residuals).reshape(-1)  # (N*m,)
         sqrt_w = np.sqrt(w)[:, None, None]
         weighted = [(a, (sqrt_w * Ja).reshape(-1, 6)) for a, Ja in lin.pose_jacobians]
@@ -298,6 +368,8 @@ def levenberg_marquardt(
     start = time.perf_counter()
     P, X = len(state.poses), len(state.points)
     free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    corresponding = _corresponding(terms)
+    _correspond(corresponding, state)
     lins, costs = _evaluate(terms, state, jacobians=True)
     cost = sum(costs.values())
     history = [cost]
@@ -333,6 +405,7 @@ def levenberg_marquardt(
         if np.max(np.abs(d_p)) < options.step_tolerance:
             converged, reason = True, "pose step below tolerance"
             break
+        _correspond(corresponding, state)
         lins, costs = _evaluate(terms, state, jacobians=True)
         cost = sum(costs.values())
     return state, SolveReport(converged, reason, iteration, cost, costs,
@@ -366,6 +439,7 @@ def pose_covariance(
     ``A C A^T``.
     """
     P, X = len(state.poses), len(state.points)
+    correspond(terms, state)
     lins, _ = _evaluate(terms, state, jacobians=True)
     ne = build_normal_equations(terms, lins, P, X)
     S, _, V_inv = _reduced_system(ne, P, 0.0)
@@ -380,7 +454,7 @@ def pose_covariance(
     for term in shared.terms:
         term, lin = by_term[id(term)]
         x_idx, Jx = lin.point_jacobian
-        w = term.weight * term.loss.weight(np.sum(lin.residuals**2, axis=1))
+        w = term.noise.weight * term.noise.loss.weight(np.sum(lin.residuals**2, axis=1))
         ids.append(x_idx)
         b.append(w[:, None] * Jx[:, 0, :])
     ids, b = np.concatenate(ids), np.concatenate(b)

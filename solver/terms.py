@@ -1,7 +1,8 @@
 """The energy terms of the joint solver (docs/solver.md), with analytic Jacobians.
 
-Each term concerns one view and one rigid body (the bone, or one pin) and returns whitened
-residuals (divided by the expected noise ``sigma``) for :mod:`solver.optimizer`:
+Each term concerns one view and one rigid body (the bone, or one pin) and returns its
+residuals in their own units (pixels, millimetres, radians) for :mod:`solver.optimizer`,
+which whitens and charges them by the term's :class:`~slamtka.solver.optimizer.NoiseModel`:
 
 - :class:`ReprojectionTerm` (E_rp): a 3D edge point, posed and projected, lands on the
   pixel where it was observed. Touches the view pose, the pin pose (for pins) and the point.
@@ -26,11 +27,11 @@ from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
 from slamtka.solver.kernels import nearest_points
 from slamtka.solver.observations import DistanceMap
-from slamtka.solver.optimizer import Linearization, RobustLoss, State
+from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
 
-__all__ = ["ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
+__all__ = ["Correspondence", "ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
            "pose_increments", "projected"]
 
 
@@ -97,23 +98,17 @@ class ReprojectionTerm:
     camera: Camera
     pixels: np.ndarray  # (N, 2)
     point_ids: np.ndarray  # (N,)
-    sigma_px: float
-    weight: float = 1.0
-    loss: RobustLoss = RobustLoss("huber", 2.0)
+    noise: NoiseModel  # sigma in pixels
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         uv, J_view, J_body, J_point = projected(state, self.view, self.body,
                                                 state.points[self.point_ids], self.camera,
                                                 jacobians)
-        r = (uv - self.pixels) / self.sigma_px
+        r = uv - self.pixels
         if not jacobians:
             return Linearization(r)
-        J_b = None if J_body is None else J_body / self.sigma_px
-        return Linearization(
-            r,
-            _pose_jacobians(self.view, self.body, J_view / self.sigma_px, J_b),
-            (self.point_ids, J_point / self.sigma_px),
-        )
+        return Linearization(r, _pose_jacobians(self.view, self.body, J_view, J_body),
+                             (self.point_ids, J_point))
 
 
 @dataclass
@@ -132,12 +127,9 @@ class BackProjectionTerm:
     name: str
     sdf: SignedDistanceField
     point_ids: np.ndarray
-    sigma_mm: float
     ray_directions: np.ndarray  # (N, 3) unit, model frame
     seated: np.ndarray  # (N, 3) model frame
-    sigma_depth_mm: float
-    weight: float = 1.0
-    loss: RobustLoss = RobustLoss("huber", 2.0)
+    noise: NoiseModel  # sigmas (mm) of the distance to the surface and along the ray
     # Where the points were observed (view, body index as in ReprojectionTerm), for reports;
     # the residuals concern the points alone.
     view: int | None = None
@@ -146,36 +138,46 @@ class BackProjectionTerm:
     def graze_offset_rms_mm(self, state: State) -> float:
         """RMS distance (mm) of the points from where their rays graze the model: off its
         surface, and moved along their rays from the grazing depth (both residuals, in mm)."""
-        r = self.linearize(state, jacobians=False).residuals * [self.sigma_mm, self.sigma_depth_mm]
+        r = self.linearize(state, jacobians=False).residuals
         return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else 0.0
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         X = state.points[self.point_ids]
         d, grad = self.sdf.query(X, gradient=jacobians)
         along = np.einsum("ij,ij->i", X - self.seated, self.ray_directions)
-        r = np.column_stack([d / self.sigma_mm, along / self.sigma_depth_mm])
+        r = np.column_stack([d, along])
         if not jacobians:
             return Linearization(r)
-        J = np.stack([grad / self.sigma_mm, self.ray_directions / self.sigma_depth_mm], axis=1)
+        J = np.stack([grad, self.ray_directions], axis=1)
         return Linearization(r, [], (self.point_ids, J))
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """What a silhouette term pairs at one linearisation point: its traced outline (model
+    frame) and, per observed contour pixel, the outline point nearest it."""
+
+    outline: np.ndarray  # (S, 3)
+    nearest: np.ndarray | None  # (M,) indices into ``outline``; None for an empty outline
 
 
 @dataclass
 class ModelProjectionTerm:
     """E_mp: the projected model silhouette and the observed contour lie on each other.
 
-    The silhouette is traced when Jacobians are requested (once per optimiser iteration)
-    and its model-frame points are held while steps are tried, the usual fixed-
-    correspondence approximation (tracing is the expensive part). With ``freeze_outline``
-    it is traced once and then held, for a final refinement that starts from converged
-    silhouettes: that problem is smooth, so its convergence tests are meaningful.
+    The silhouette and its pairing with the observed pixels (:class:`Correspondence`) are
+    chosen by :meth:`correspond`, the explicit correspondence step the optimiser takes once
+    per iteration (tracing is the expensive part), and held while steps are tried, the usual
+    fixed-correspondence approximation. With ``freeze_outline`` the outline is traced at the
+    first step and then held (only the pairing is chosen again), for a final refinement that
+    starts from converged silhouettes: that problem is smooth, so its convergence tests are
+    meaningful.
 
     Two-sided, so that neither can be ignored: every silhouette point inside the field of
     view is charged its distance to the observed contour (distance map), and every observed
     contour pixel its distance to the nearest projected silhouette point. A one-sided cost
-    could be lowered by sliding the model out of the field of view. The nearest points are
-    searched when Jacobians are requested and held while steps are tried: a held pairing
-    can only overstate a trial's cost, so a step accepted on it is a true decrease.
+    could be lowered by sliding the model out of the field of view. A held pairing can only
+    overstate a trial's cost, so a step accepted on it is a true decrease.
     """
 
     name: str
@@ -185,23 +187,21 @@ class ModelProjectionTerm:
     contour: ContourGenerator
     distance_map: DistanceMap
     observed: np.ndarray  # (M, 2) observed contour pixels of this body
-    sigma_px: float
+    noise: NoiseModel  # sigma in pixels
     spacing_px: float = 3.0
     outer_only: bool = True
-    weight: float = 1.0
-    loss: RobustLoss = RobustLoss("cauchy", 3.0)
     freeze_outline: bool = False
-    _outline: np.ndarray | None = field(default=None, init=False, repr=False)
+    correspondence: Correspondence | None = field(default=None, init=False, repr=False)
+    # The footprint that tells the outer outline from interior folds, and the pose it was
+    # rasterised at: a cache of :meth:`correspond`, redone once the model has moved enough.
     _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
-    _nearest: np.ndarray | None = field(default=None, init=False, repr=False)
 
     def _T_cam_body(self, state: State) -> Pose:
         T = state.poses[self.view]
         return T if self.body is None else T @ state.poses[self.body]
 
     def _trace(self, T_cam_body: Pose) -> np.ndarray:
-        """Model-frame outline points; the footprint interior that tells the outer outline
-        from interior folds is rasterised again only once the model has moved enough."""
+        """Model-frame outline points at ``T_cam_body``."""
         interior = None
         if self.outer_only:
             if self._interior is None or self.contour.image_motion_px(
@@ -211,22 +211,34 @@ class ModelProjectionTerm:
         return self.contour.outline_points(T_cam_body, self.camera, self.spacing_px,
                                            outer_only=self.outer_only, interior=interior)
 
+    def correspond(self, state: State) -> None:
+        """The correspondence step at ``state``: the outline traced (unless frozen and
+        traced already) and each observed pixel paired with its nearest outline point."""
+        T_cam_body = self._T_cam_body(state)
+        held = self.correspondence
+        S = held.outline if held is not None and self.freeze_outline else self._trace(T_cam_body)
+        nearest = None
+        if len(S):
+            # Binned at twice the outline's spacing: a few points per occupied cell.
+            uv = self.camera.project(T_cam_body.apply(S))
+            nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
+        self.correspondence = Correspondence(S, nearest)
+
     def distances_px(self, state: State) -> tuple[np.ndarray, np.ndarray]:
         """Pixel distances of the outline traced at ``state`` to the observed contour, and of
         each observed contour pixel to the outline (the two sides of the residual)."""
-        self._outline = None
-        r = np.abs(self.linearize(state, jacobians=False).residuals[:, 0]) * self.sigma_px
+        self.correspond(state)
+        r = np.abs(self.linearize(state, jacobians=False).residuals[:, 0])
         return r[: len(r) - len(self.observed)], r[len(r) - len(self.observed):]
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
+        if self.correspondence is None:
+            raise RuntimeError("a silhouette term is linearised after its correspondence step")
         T_cam_body = self._T_cam_body(state)
-        if self._outline is None or (jacobians and not self.freeze_outline):
-            self._outline = self._trace(T_cam_body)
-            self._nearest = None
-        S = self._outline
-        if len(S) == 0:
+        S, nearest = self.correspondence.outline, self.correspondence.nearest
+        if nearest is None:
             # Nothing of the model is in view: every observed pixel is unexplained.
-            r = np.full((len(self.observed), 1), self.camera.width / self.sigma_px)
+            r = np.full((len(self.observed), 1), float(self.camera.width))
             return Linearization(r)
         p_cam = T_cam_body.apply(S)
         if jacobians:
@@ -234,13 +246,9 @@ class ModelProjectionTerm:
         else:
             uv = self.camera.project(p_cam)
         dist, grad = self.distance_map.query(uv)
-        if jacobians or self._nearest is None:
-            # Binned at twice the outline's spacing: a few points per occupied cell.
-            self._nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
-        nearest = self._nearest
         offset = uv[nearest] - self.observed
         nearest_dist = row_norms(offset)
-        r = np.concatenate([dist, nearest_dist])[:, None] / self.sigma_px
+        r = np.concatenate([dist, nearest_dist])[:, None]
         if not jacobians:
             return Linearization(r)
         direction = offset / np.maximum(nearest_dist, 1e-9)[:, None]
@@ -249,7 +257,7 @@ class ModelProjectionTerm:
         # gradient is carried to the camera frame first, so the poses' blocks are formed
         # for one row per residual instead of two.
         rows = np.concatenate([np.arange(len(S)), nearest])
-        J_pix = np.concatenate([grad, direction]) / self.sigma_px  # (N, 2)
+        J_pix = np.concatenate([grad, direction])  # (N, 2)
         J_cam = np.einsum("nk,nkj->nj", J_pix, J_proj[rows])  # (N, 3)
         J_view, J_body, _ = pose_increments(state, self.view, self.body, S[rows], J_cam)
         J_b = None if J_body is None else J_body[:, None, :]
@@ -264,8 +272,8 @@ class RelativePoseTerm:
     ``D = A^-1 T_A^-1 M^-1 T_B A`` is the tibia's pose seen from view B and carried back to
     view A, expressed in the anatomical frame ``anchor`` (``T_tibia_anat``), so that its
     rotation is about the knee centre and its translation is at the knee, where the
-    encoder uncertainty (``sigma_rad``, ``sigma_mm``) is stated. The residual is
-    ``(t_D / sigma_mm, log R_D / sigma_rad)``. Its Jacobians follow from how the right
+    encoder uncertainty (the noise model's sigmas, mm and rad) is stated. The residual is
+    ``(t_D, log R_D)``. Its Jacobians follow from how the right
     increments ``E = (rho, phi)`` of the views move ``D``: ``T_B E`` gives ``D (A^-1 E A)``
     and ``T_A E`` gives ``(A^-1 E^-1 A) D``, to first order a right and a left increment of
     ``D`` by the increment carried into the anchor frame.
@@ -276,10 +284,7 @@ class RelativePoseTerm:
     view_b: int
     measured: Pose
     anchor: Pose
-    sigma_rad: float
-    sigma_mm: float
-    weight: float = 1.0
-    loss: RobustLoss = RobustLoss("l2", 1.0)
+    noise: NoiseModel  # sigmas of the translation (mm, x3) and the rotation (rad, x3)
 
     def _discrepancy(self, T_a: Pose, T_b: Pose) -> Pose:
         return self.anchor.inverse() @ T_a.inverse() @ self.measured.inverse() @ T_b @ self.anchor
@@ -287,7 +292,7 @@ class RelativePoseTerm:
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         D = self._discrepancy(state.poses[self.view_a], state.poses[self.view_b])
         phi = so3_log(D.R)
-        r = np.concatenate([D.t / self.sigma_mm, phi / self.sigma_rad])[None, :]
+        r = np.concatenate([D.t, phi])[None, :]
         if not jacobians:
             return Linearization(r)
         R_inv, t_hat = self.anchor.R.T, hat(self.anchor.t)  # A^-1's rotation, [t_A]x
@@ -301,6 +306,4 @@ class RelativePoseTerm:
         J_b[:3, :3] = D.R @ R_inv
         J_b[:3, 3:] = -D.R @ R_inv @ t_hat
         J_b[3:, 3:] = right_inv @ R_inv
-        scale = np.repeat([1.0 / self.sigma_mm, 1.0 / self.sigma_rad], 3)[:, None]
-        J_a, J_b = scale * J_a, scale * J_b
         return Linearization(r, [(self.view_a, J_a[None]), (self.view_b, J_b[None])])

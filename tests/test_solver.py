@@ -8,23 +8,29 @@ from scipy.spatial import cKDTree
 
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver import gates, optimizer
+from slamtka.solver.diagnostics import SolveDiagnostics, diagnose
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
 from slamtka.solver.pin_naming import settle_naming, swap_pins
-from slamtka.solver.slam import METHODS, InitialGuess, JointProblem, SolverConfig, seat_on_rays, solve_joint
+from slamtka.solver.problem import JointProblem
+from slamtka.solver.ray_seating import seat_on_rays
+from slamtka.solver.slam import METHODS, InitialGuess, SolverConfig, solve_joint
+from slamtka.solver.solver_config import GateLimits, SamplingConfig, ScheduleConfig
 
 
 def _linearized_problem(plan, seed=0):
     case = simulate_case(plan, SimulationConfig(seed=seed, init_rot_sd_rad=0.02, init_trans_sd_mm=3.0))
-    problem = JointProblem(plan, case.views, SolverConfig(edge_spacing_px=12.0))
+    problem = JointProblem(plan, case.views, SolverConfig(sampling=SamplingConfig(edge_spacing_px=12.0)))
     poses = tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin)
     points, groups = problem.seated_points(poses)
     from slamtka.solver.optimizer import RobustLoss
 
     terms = problem.edge_terms(points, groups) + problem.silhouette_terms(
         ("bone", "pin1", "pin2"), 1.0, RobustLoss("cauchy", 3.0)) + problem.odometry_terms(case.initial)
-    return case, problem, State(poses, points), terms
+    state = State(poses, points)
+    optimizer.correspond(terms, state)  # the silhouettes paired with their contours, then held
+    return case, problem, state, terms
 
 
 def test_analytic_jacobians_match_finite_differences(real_plan):
@@ -32,13 +38,14 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
     n_poses = len(state.poses)
     checked = set()
     for term in terms:
-        lin = term.linearize(state)
+        lin = optimizer.whitened(term, state)
         for p, J in lin.pose_jacobians:
             for dof in range(6):
                 eps = 1e-7
                 d = np.zeros((n_poses, 6))
                 d[p, dof] = eps
-                moved = term.linearize(state.retract(d.ravel(), np.zeros_like(state.points)), False)
+                moved = optimizer.whitened(term, state.retract(d.ravel(), np.zeros_like(state.points)),
+                                           False)
                 if moved.residuals.shape != lin.residuals.shape:
                     continue  # the traced silhouette changed: not comparable
                 fd = (moved.residuals - lin.residuals) / eps
@@ -53,7 +60,7 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
                 eps = 1e-6
                 d = np.zeros_like(state.points)
                 d[ids, dof] = eps
-                moved = term.linearize(state.retract(np.zeros(6 * n_poses), d), False)
+                moved = optimizer.whitened(term, state.retract(np.zeros(6 * n_poses), d), False)
                 fd = (moved.residuals - lin.residuals) / eps
                 err = np.abs(fd - J[:, :, dof])
                 assert np.mean(err < 1e-3 * (1 + np.abs(J[:, :, dof]))) > 0.97, (term.name, dof)
@@ -87,7 +94,7 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
     points, groups = problem.seated_points(truth)
     state = State(truth, points)
     # Least squares: a robust loss's weights would move with the residuals, not the response.
-    terms = [replace(t, loss=RobustLoss("l2"))
+    terms = [replace(t, noise=replace(t.noise, loss=RobustLoss("l2")))
              for t in problem.edge_terms(points, groups) + problem.odometry_terms(case.initial)]
     fixed = problem.fixed_dofs()
     bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
@@ -106,7 +113,7 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
     _, response = pose_covariance(terms, state, fixed, SharedError(bone, np.zeros(rows, int),
                                                                    np.ones((1, 1))))
     # The whitened error is the surface offset over the bone's sigma; the sign drops out.
-    expected = response * (offset_mm / problem.config.sigma_mm) ** 2
+    expected = response * (offset_mm / problem.config.noise.sigma_mm) ** 2
     observed = np.outer(change, change)
     assert np.linalg.norm(expected) > 1e-4  # the poses do move (by ~0.1 mm)
     assert np.linalg.norm(observed - expected) < 0.01 * np.linalg.norm(expected)
@@ -134,7 +141,7 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
     pin_rp = next(t for t in terms if t.name == "E_rp" and t.body is not None)
 
     def couplings(term_list):
-        lins = [t.linearize(state) for t in term_list]
+        lins = [optimizer.whitened(t, state) for t in term_list]
         ne = optimizer.build_normal_equations(term_list, lins, P, X)
         assert np.all(np.diff(ne.pair_point * P + ne.pair_pose) > 0)  # one block per pair
         return {(int(x), int(a)): block for x, a, block in zip(ne.pair_point, ne.pair_pose, ne.H_px)}
@@ -149,7 +156,7 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
 def test_schur_step_equals_the_dense_solution(real_plan):
     _, problem, state, terms = _linearized_problem(real_plan)
     P, X = len(state.poses), len(state.points)
-    lins = [t.linearize(state) for t in terms]
+    lins = [optimizer.whitened(t, state) for t in terms]
     ne = optimizer.build_normal_equations(terms, lins, P, X)
     free = ~problem.fixed_dofs()
     lam = 1e-3
@@ -302,11 +309,12 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     problem = JointProblem(real_plan, case.views, SolverConfig())
     (term,) = problem.odometry_terms(case.initial)
     state = State(tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin), np.zeros((0, 3)))
-    assert np.allclose(term.linearize(state, False).residuals, 0.0, atol=1e-9)
+    assert np.allclose(optimizer.whitened(term, state, False).residuals, 0.0, atol=1e-9)
     # Moving one view by the encoder sigma about the knee costs one sigma.
     anchor = real_plan.landmarks.T_tibia_anat()
-    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, term.sigma_rad]) @ anchor.inverse()
-    r = term.linearize(State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
+    sigma_rad = term.noise.sigma[5]
+    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, sigma_rad]) @ anchor.inverse()
+    r = optimizer.whitened(term, State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
     assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
 
 
@@ -331,45 +339,50 @@ def test_an_unknown_method_is_refused_by_name():
         SolverConfig(method="magic")
 
 
+def _contour_misfit(problem: JointProblem, state: State, terms: list | None = None) -> str | None:
+    return gates.contour_misfit(diagnose(problem, state, terms or []), problem.config.gates)
+
+
+def _pin_divergence(problem: JointProblem, state: State) -> str | None:
+    return gates.pin_divergence(diagnose(problem, state, []), problem.config.gates)
+
+
 def test_a_model_outline_off_its_contour_is_named(real_plan):
     """The final fit check traces every silhouette at the final poses: a pin 4 mm off
     (a solve caught in a wrong basin) is refused by name, the true poses pass."""
-    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
-    assert contour_misfit(problem, State(truth, np.zeros((0, 3))), [], {}) is None
+    assert _contour_misfit(problem, State(truth, np.zeros((0, 3)))) is None
     moved = Pose(truth[-2].R, truth[-2].t + 4.0 * truth[-2].R[:, 0])
-    reason = contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))), [],
-                             {})
+    reason = _contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))))
     assert reason is not None and "pin1 outline" in reason
     # A pin turned 2 deg about its tip keeps most of its outline near the contour (a small
     # median) but its far end off it.
     from slamtka.solver.geometry import rotation_about
 
     turned = Pose(truth[-1].R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), truth[-1].t)
-    strict = JointProblem(real_plan, case.views, SolverConfig(max_pin_outline_p90_px=6.0))
-    reason = contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))), [], {})
+    strict = JointProblem(real_plan, case.views, SolverConfig(gates=GateLimits(max_pin_outline_p90_px=6.0)))
+    reason = _contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))))
     assert reason is not None and "pin2 outline" in reason and "leaves its contour" in reason
 
 
 def test_pin_edge_points_off_the_pin_are_named(real_plan):
     """Edge points seated at the true poses lie on the pins; those of one pin in one view
     carried 1.5 mm off it (its views disagree about where it is) are refused by name."""
-    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(real_plan, SimulationConfig(seed=8, noise_px=0.0))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
     terms = problem.edge_terms(points, groups)
-    assert contour_misfit(problem, State(truth, points), terms, {}) is None
+    assert _contour_misfit(problem, State(truth, points), terms) is None
     ids = groups[1, "pin2"].ids
     _, outward = real_plan.pin_model().sdf.query(points[ids])
     moved = points.copy()
     moved[ids] += 1.5 * outward / np.linalg.norm(outward, axis=1, keepdims=True)
-    reason = contour_misfit(problem, State(truth, moved), terms, {})
+    reason = _contour_misfit(problem, State(truth, moved), terms)
     assert reason is not None and "pin2 edge points of view view2 lie off the pin" in reason
 
 
@@ -428,14 +441,13 @@ def test_stray_bone_contour_points_get_no_edge_points(phantom_plan):
 def test_a_bone_contour_that_mostly_misses_the_bone_is_refused(phantom_plan):
     """A bone contour of which 30% of the rays miss the bone at the final poses is not its
     outline: refused by name."""
-    from slamtka.solver.gates import contour_misfit
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=12, noise_px=0.0))
     problem = JointProblem(phantom_plan, _with_stray_bone_pixels(case, 0.3, seed=2)[0],
                            SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
-    reason = contour_misfit(problem, State(truth, points), problem.edge_terms(points, groups), {})
+    reason = _contour_misfit(problem, State(truth, points), problem.edge_terms(points, groups))
     assert reason is not None and "bone contour of view" in reason and "lie more than 3 mm off" in reason
 
 
@@ -459,7 +471,7 @@ def test_pin_points_slid_along_their_rays_send_the_solve_to_the_global_search(ph
     graze them, and reported STR 0.61 deg off with a 0.12 deg sigma. The grazing check
     sends it to the global search, which measures it."""
     case = simulate_case(phantom_plan, SimulationConfig.at_level(2, 7207))
-    outcome = solve_joint(phantom_plan, case.views, case.initial, SolverConfig(max_seatings=2))
+    outcome = solve_joint(phantom_plan, case.views, case.initial, SolverConfig(schedule=ScheduleConfig(max_seatings=2)))
     assert outcome.status == "measured" and outcome.initialisation == "global set-up search"
     assert max(_errors(case, outcome)) < 0.2
 
@@ -473,7 +485,7 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
     comes within 0.3 deg and measures, from the encoders' start."""
     case = simulate_case(phantom_plan, SimulationConfig.at_level(2, 11))
     twice = solve_joint(phantom_plan, case.views, case.initial,
-                        SolverConfig(max_seatings=2, global_searches=()))
+                        SolverConfig(schedule=ScheduleConfig(max_seatings=2), global_searches=()))
     assert twice.status == "not_measured" and "lie off the pin" in twice.reason
     outcome = solve_joint(phantom_plan, case.views, case.initial)
     assert outcome.status == "measured" and outcome.initialisation == "encoders"
@@ -483,18 +495,17 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
 def test_pins_that_are_not_parallel_are_named(phantom_plan):
     """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
     tip (whatever the contours say) is refused by name."""
-    from slamtka.solver.gates import pin_divergence
     from slamtka.solver.geometry import rotation_about
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
     truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
-    assert pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
+    assert _pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
     # Turned about its own axis, a pin is the same pin.
     spun = Pose(truth[-1].R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), truth[-1].t)
-    assert pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
+    assert _pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
     turned = Pose(truth[-1].R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), truth[-1].t)
-    reason = pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
+    reason = _pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
     assert reason is not None and "5.0 deg from parallel" in reason
 
 
@@ -604,15 +615,21 @@ def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_
     assert not np.array_equal(plain.views[0].contours["bone"], mismatched.views[0].contours["bone"])
 
 
+def _with_rms(rms: dict[str, float]) -> SolveDiagnostics:
+    """Diagnostics of a solve that fits in every respect but its residuals ``rms``."""
+    return SolveDiagnostics(rms, 0, None, (), 3.0, (), (), 0.0, 90.0)
+
+
 @pytest.mark.system
 def test_views_that_disagree_with_the_encoders_motion_are_refused(phantom_plan):
     """A solve whose views moved otherwise than the encoders measured (here the encoders
     are told 6 deg wrong, 12 sigma) fits the contours, but not the C-arm's motion: the E_odo
     gate refuses it (a local minimum left this way was measured 0.8 deg off)."""
     case = simulate_case(phantom_plan, SimulationConfig(seed=3))
-    assert gates.odometry_misfit({"E_odo": 3.4}, 7.5) is None
-    assert "encoders' C-arm motion" in gates.odometry_misfit({"E_odo": 8.9}, 7.5)
-    assert gates.odometry_misfit({"E_rp": 9.0}, 7.5) is None
+    limits = GateLimits(max_odometry_rms_sigma=7.5)
+    assert gates.odometry_misfit(_with_rms({"E_odo": 3.4}), limits) is None
+    assert "encoders' C-arm motion" in gates.odometry_misfit(_with_rms({"E_odo": 8.9}), limits)
+    assert gates.odometry_misfit(_with_rms({"E_rp": 9.0}), limits) is None
     first, second = case.initial.T_cam_tibia
     anat = phantom_plan.landmarks.T_tibia_anat()
     turn = Pose(rotation_about([0.0, 0.0, 1.0], np.radians(6.0)), np.zeros(3))

@@ -18,8 +18,8 @@ from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, look_at, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.plan import Plan
+from slamtka.solver.problem import InitialGuess
 from slamtka.solver.silhouette import ContourGenerator
-from slamtka.solver.slam import InitialGuess
 
 __all__ = ["SimulationConfig", "SimulatedCase", "SimulationError", "simulate_case", "default_camera", "perturb",
            "segmentation_error"]

@@ -1,0 +1,139 @@
+"""What the quality gates read: the figures of a problem's inputs and of a solve's answer,
+measured once by the solver (:func:`input_diagnostics`, :func:`diagnose`), so that the gates
+(:mod:`.gates`) judge plain numbers and never reach into problems or terms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slamtka.solver.geometry import Pose
+from slamtka.solver.observations import LABELS
+from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
+from slamtka.solver.problem import InitialGuess, JointProblem
+from slamtka.solver.terms import BackProjectionTerm
+
+__all__ = ["InputDiagnostics", "OutlineFit", "PinGraze", "SolveDiagnostics", "StrayShare",
+           "diagnose", "input_diagnostics", "outline_fits", "residual_rms", "view_separation_deg"]
+
+
+@dataclass(frozen=True)
+class InputDiagnostics:
+    """A problem's inputs before its solve."""
+
+    view_ids: tuple[str, ...]
+    point_counts: dict[tuple[int, str], int]  # kept contour pixels per (view index, label)
+    notes: tuple[dict[str, str], ...]  # per view: extraction's note on a missing model
+    view_separation_deg: float  # of the encoders' starting views
+
+
+@dataclass(frozen=True)
+class OutlineFit:
+    """A model's silhouette traced at the solved poses against its observed contour."""
+
+    view_id: str
+    label: str
+    median_px: float  # both sides: outline to contour and contour to outline
+    p90_px: float | None  # of the outline alone; pins with an outline only
+
+
+@dataclass(frozen=True)
+class StrayShare:
+    """The share of a bone contour's pixels that kept no edge point (their rays miss it)."""
+
+    view_id: str
+    label: str
+    fraction: float
+
+
+@dataclass(frozen=True)
+class PinGraze:
+    """RMS distance (mm) of a pin's edge points in one view from where their rays graze it."""
+
+    view_id: str
+    label: str
+    offset_mm: float
+
+
+@dataclass(frozen=True)
+class SolveDiagnostics:
+    """A finished solve's answer, measured; everything the answer gates need."""
+
+    residual_rms: dict[str, float]  # whitened RMS per energy term
+    n_residuals: int
+    reprojection_rms_px: float | None  # E_rp's, in pixels (methods with edge points)
+    stray_shares: tuple[StrayShare, ...]  # methods with edge points
+    max_ray_miss_mm: float  # what made a pixel stray
+    pin_grazes: tuple[PinGraze, ...]  # methods with edge points
+    outlines: tuple[OutlineFit, ...]  # every model in every view
+    pin_divergence_deg: float  # angle between the pins' axes
+    view_separation_deg: float  # of the solved views
+
+
+def view_separation_deg(views: list[Pose]) -> float:
+    """Largest angle between the viewing directions of any two views, degrees."""
+    axes = np.array([T.R[2] for T in views])  # camera +z in the tibia frame
+    cos = np.clip(axes @ axes.T, -1.0, 1.0)
+    return float(np.degrees(np.max(np.arccos(cos))))
+
+
+def input_diagnostics(problem: JointProblem, initial: InitialGuess) -> InputDiagnostics:
+    """The figures the input gate reads."""
+    return InputDiagnostics(
+        tuple(v.view_id for v in problem.views),
+        {key: len(px) for key, px in problem.pixels.items()},
+        tuple(dict(v.notes) for v in problem.views),
+        view_separation_deg(list(initial.T_cam_tibia)) if problem.n_views else 0.0)
+
+
+def residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int]:
+    """RMS over each energy term's residual rows of the row's whitened length (in units of
+    its sigma: an edge point's pixel offset, its distance to the surface and along its ray,
+    all six components of a relative pose at once), and the total number of residuals (for
+    the degrees of freedom of the fit)."""
+    sums: dict[str, list[float]] = {}
+    total = 0
+    for term in terms:
+        r = whitened(term, state, jacobians=False).residuals
+        acc = sums.setdefault(term.name, [0.0, 0])
+        acc[0] += float(np.sum(r**2))
+        acc[1] += r.shape[0]
+        total += r.size
+    return {name: float(np.sqrt(ssq / max(n, 1))) for name, (ssq, n) in sums.items()}, total
+
+
+def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
+                 ) -> tuple[OutlineFit, ...]:
+    """Every model of ``labels`` in every view where it has a contour, traced at ``state``."""
+    fits = []
+    for term in problem.silhouette_terms(labels, 1.0, RobustLoss("l2")):
+        outline, contour = term.distances_px(state)
+        label = problem.label(term.body)
+        median_px = float(np.median(np.concatenate([outline, contour])))
+        p90_px = float(np.percentile(outline, 90)) if term.body is not None and len(outline) else None
+        fits.append(OutlineFit(problem.views[term.view].view_id, label, median_px, p90_px))
+    return tuple(fits)
+
+
+def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDiagnostics:
+    """The figures the answer gates read, for the final energy ``terms`` at ``state``."""
+    rms, n_residuals = residual_rms(terms, state)
+    seated = problem.edge_point_counts(terms)
+    strays = tuple(
+        StrayShare(problem.views[k].view_id, label, 1.0 - seated.get((k, label), 0) / len(pixels))
+        for (k, label), pixels in problem.pixels.items()
+        if seated and label == "bone" and len(pixels))
+    grazes = tuple(
+        PinGraze(problem.views[t.view].view_id, problem.label(t.body), t.graze_offset_rms_mm(state))
+        for t in terms if isinstance(t, BackProjectionTerm) and t.body is not None
+        and t.view is not None)
+    axes = [T.R[:, 2] for T in state.poses[problem.n_views:]]
+    divergence = float(np.degrees(np.arccos(np.clip(abs(axes[0] @ axes[1]), -1.0, 1.0))))
+    return SolveDiagnostics(
+        rms, n_residuals,
+        rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
+        strays, problem.config.sampling.max_ray_miss_mm, grazes,
+        outline_fits(problem, state, LABELS), divergence,
+        view_separation_deg(list(state.poses[:problem.n_views])))
+

@@ -1,0 +1,253 @@
+"""One solve's problem: its variables (view and pin poses, edge points), the observed
+contour pixels, and the energy terms built from them (docs/solver.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slamtka.solver.geometry import Pose
+from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation
+from slamtka.solver.optimizer import NoiseModel, RobustLoss, Term
+from slamtka.solver.pin_naming import naming_clear, naming_score, swap_pays, swap_pins
+from slamtka.solver.plan import Plan, RigidModel
+from slamtka.solver.ray_seating import seat_on_rays
+from slamtka.solver.solver_config import SolverConfig
+from slamtka.solver.terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
+from slamtka.solver.triangulation import PinSighting, triangulate_pin
+
+__all__ = ["EdgeGroup", "InitialGuess", "JointProblem", "thin_contour"]
+
+# Edge points' robust loss (in sigmas): a stray point pulls with a constant force.
+_EDGE_LOSS = RobustLoss("huber", 2.0)
+
+
+@dataclass(frozen=True)
+class InitialGuess:
+    """Starting poses: each view from the encoders, each pin from the planned resection.
+
+    ``odometry_sigma`` (rad, mm), when given, says that the motion between the views'
+    poses was measured by the C-arm's encoders with that uncertainty (about the knee); the
+    solver then keeps it as a relative-pose factor (E_odo), not only as a starting point.
+    """
+
+    T_cam_tibia: tuple[Pose, ...]
+    T_tibia_pin: tuple[Pose, Pose]
+    odometry_sigma: tuple[float, float] | None = None
+
+
+
+def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
+    """Keep one observed edge pixel per ``spacing_px`` grid cell (order preserved)."""
+    if len(pixels) == 0:
+        return pixels
+    cells = np.floor(pixels / spacing_px).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    return pixels[np.sort(first)]
+
+
+
+class EdgeGroup(NamedTuple):
+    """The edge points of one model in one view: their ids among the state's points, the
+    contour pixels they were seated from and their rays' directions (model frame)."""
+
+    ids: np.ndarray
+    pixels: np.ndarray
+    directions: np.ndarray
+
+
+class JointProblem:
+    """Variables, terms and gauge of one solve, built from a plan and the views."""
+
+    def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig,
+                 naming_fixed: bool = False):
+        """``naming_fixed``: take the views' pin names as given (no :meth:`relabelled`)."""
+        self.plan, self.views, self.config = plan, list(views), config
+        self.naming_fixed = naming_fixed
+        self.bone = plan.bone_model()
+        self.pin = plan.pin_model()
+        self.n_views = len(views)
+        self.pixels = {(k, label): thin_contour(v.contours[label], config.sampling.edge_spacing_px)
+                       for k, v in enumerate(views) for label in LABELS}
+        # ... and more sparsely for the coarse silhouette stages (SamplingConfig.coarse_thinning).
+        self.coarse_pixels = {key: thin_contour(px, config.sampling.edge_spacing_px * config.sampling.coarse_thinning)
+                              for key, px in self.pixels.items()}
+
+    def attributed(self, poses: tuple[Pose, ...]) -> JointProblem:
+        """The problem without the bone contour pixels that no part of the tibia's outline,
+        traced at ``poses``, comes near (``SamplingConfig.foreign_edge_px``): the edges of a
+        femur, a patella, a retractor or a collimator blade that extraction could not tell
+        from the tibia's. Only views whose traced outline lies on their contour (median
+        ``max_coarse_bone_median_px``) are pruned: a model off its contour says nothing
+        about which edges are its own. ``self`` when nothing is dropped."""
+        c = self.config
+        views = list(self.views)
+        for k, view in enumerate(self.views):
+            pixels = view.contours["bone"]
+            if len(pixels) == 0:
+                continue
+            T = poses[k]
+            outline = self.bone.contour.outline_points(T, view.camera, c.sampling.silhouette_spacing_px,
+                                                       outer_only=True)
+            if len(outline) == 0:
+                continue
+            uv = view.camera.project(T.apply(outline))
+            if float(np.median(view.distance_map("bone").query(uv)[0])) > c.gates.max_coarse_bone_median_px:
+                continue
+            near = cKDTree(uv).query(pixels)[0] <= c.sampling.foreign_edge_px
+            if near.all():
+                continue
+            views[k] = ViewObservation(view.view_id, view.camera, {**view.contours, "bone": pixels[near]},
+                                       view.notes)
+        if all(a is b for a, b in zip(views, self.views)):
+            return self
+        return JointProblem(self.plan, views, c, self.naming_fixed)
+
+    def point_counts(self) -> dict[str, int]:
+        """Kept contour points per view and label, for the result document."""
+        return self.named({key: len(px) for key, px in self.pixels.items()})
+
+    def named(self, counts: dict[tuple[int, str], int]) -> dict[str, int]:
+        """Counts per (view index, label) keyed as the result document names them."""
+        return {f"{self.views[k].view_id}/{label}": n for (k, label), n in counts.items()}
+
+    def edge_point_counts(self, terms: list[Term]) -> dict[tuple[int, str], int]:
+        """Contour points per view and label that kept an edge point in ``terms`` (those of
+        the re-projection terms; empty for methods without edge points)."""
+        return {(t.view, self.label(t.body)): len(t.pixels)
+                for t in terms if isinstance(t, ReprojectionTerm)}
+
+    def body_index(self, label: str) -> int | None:
+        return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
+
+    def label(self, body: int | None) -> str:
+        """The label of the body at pose index ``body`` (the inverse of :meth:`body_index`)."""
+        return "bone" if body is None else PIN_LABELS[body - self.n_views]
+
+    def model(self, label: str) -> RigidModel:
+        return self.bone if label == "bone" else self.pin
+
+    def fixed_dofs(self, views: bool = False, pins: bool = False) -> np.ndarray:
+        """Mask of parameters held fixed: always each pin's roll about its own axis (a gauge
+        direction), and optionally all view or all pin parameters (staged solves)."""
+        fixed = np.zeros((self.n_views + 2, 6), bool)
+        fixed[: self.n_views] = views
+        fixed[self.n_views:] = pins
+        fixed[self.n_views:, 5] = True
+        return fixed.reshape(-1)
+
+    def T_cam_body(self, poses: tuple[Pose, ...], k: int, label: str) -> Pose:
+        body = self.body_index(label)
+        return poses[k] if body is None else poses[k] @ poses[body]
+
+    def relabelled(self, poses: tuple[Pose, ...]) -> tuple[JointProblem, list[str], list[str]]:
+        """The problem with the two pins' names swapped in each view where the swap makes
+        both pins' sightings meet clearly better (views posed from the bone alone; names
+        from extraction's guess; :mod:`solver.pin_naming`). Also the ids of the views
+        swapped, and of those whose naming is not clear either way."""
+        if self.naming_fixed:
+            return self, [], []
+        length, view_poses = self.plan.pin_length(), poses[: self.n_views]
+        views, swapped, unclear = list(self.views), list[str](), list[str]()
+        for k in range(1, self.n_views):
+            trial = views[:k] + [swap_pins(views[k])] + views[k + 1:]
+            kept, changed = naming_score(views, view_poses, length), naming_score(trial, view_poses, length)
+            if swap_pays(kept, changed):
+                views, swapped, kept, changed = trial, swapped + [views[k].view_id], changed, kept
+            if not naming_clear(kept, changed):
+                unclear.append(views[k].view_id)
+        problem = JointProblem(self.plan, views, self.config) if swapped else self
+        return problem, swapped, unclear
+
+    def triangulated_pins(self, poses: tuple[Pose, ...]) -> tuple[Pose, ...]:
+        """Each pin's pose triangulated from its contours in the views at ``poses`` (the
+        current pin pose where it cannot be)."""
+        pins = []
+        for i, label in enumerate(PIN_LABELS):
+            current = poses[self.n_views + i]
+            sightings = [PinSighting(view.camera, poses[k], self.pixels[k, label])
+                         for k, view in enumerate(self.views)]
+            pins.append(triangulate_pin(sightings, current, self.plan.pin_length()) or current)
+        return tuple(pins)
+
+    def seated_points(self, poses: tuple[Pose, ...], labels: tuple[str, ...] = LABELS
+                      ) -> tuple[np.ndarray, dict[tuple[int, str], EdgeGroup]]:
+        """Edge points of ``labels`` seated on their rays for ``poses``, and per view and
+        label the group of points kept: for the bone, those whose rays pass within
+        ``SamplingConfig.max_ray_miss_mm`` of it."""
+        chunks, groups, start = [], {}, 0
+        for (k, label), px in self.pixels.items():
+            if len(px) == 0 or label not in labels:
+                continue
+            step = 1.0 if label == "bone" else 0.25
+            model = self.model(label)
+            T_cam_body, camera = self.T_cam_body(poses, k, label), self.views[k].camera
+            seated = seat_on_rays(model, T_cam_body, camera, px, step)
+            kept = np.ones(len(px), bool)
+            if label == "bone":
+                kept = np.abs(model.sdf.query(seated, gradient=False)[0]) <= self.config.sampling.max_ray_miss_mm
+            if not kept.any():
+                continue
+            chunks.append(seated[kept])
+            groups[k, label] = EdgeGroup(np.arange(start, start + kept.sum()), px[kept],
+                                         T_cam_body.inverse().rotate(camera.rays(px[kept])))
+            start += int(kept.sum())
+        points = np.vstack(chunks) if chunks else np.zeros((0, 3))
+        return points, groups
+
+    def silhouette_terms(self, labels: tuple[str, ...], weight: float, loss: RobustLoss,
+                         freeze_outline: bool = False, light: bool = False,
+                         thinned: bool = False) -> list[ModelProjectionTerm]:
+        """E_mp of ``labels`` in every view; ``light`` traces the bone's lighter mesh (the
+        set-up search's), enough under a wide robust scale (a pin's mesh is light already);
+        ``thinned`` samples contours and outlines ``SamplingConfig.coarse_thinning`` times
+        more sparsely."""
+        c = self.config
+        thinning = c.sampling.coarse_thinning if thinned else 1.0
+        terms: list[ModelProjectionTerm] = []
+        for k, view in enumerate(self.views):
+            for label in labels:
+                if len(view.contours[label]) == 0:
+                    continue
+                terms.append(ModelProjectionTerm(
+                    "E_mp", k, self.body_index(label), view.camera,
+                    (self.bone.coarse_contour if light and label == "bone"
+                     else self.model(label).contour),
+                    view.distance_map(label),
+                    (self.coarse_pixels if thinned else self.pixels)[k, label],
+                    NoiseModel(c.noise.sigma_px, loss, weight),
+                    c.sampling.silhouette_spacing_px * thinning,
+                    outer_only=(label == "bone"), freeze_outline=freeze_outline))
+        return terms
+
+    def odometry_terms(self, initial: InitialGuess) -> list[Term]:
+        """E_odo between the first view and each other one, if the encoders measured it
+        (whether a method uses it is its schedule's choice)."""
+        if initial.odometry_sigma is None:
+            return []
+        sigma_rad, sigma_mm = initial.odometry_sigma
+        anchor = self.plan.landmarks.T_tibia_anat()
+        first = initial.T_cam_tibia[0]
+        noise = NoiseModel((sigma_mm,) * 3 + (sigma_rad,) * 3)
+        return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, noise)
+                for k, T in enumerate(initial.T_cam_tibia) if k > 0]
+
+    def edge_terms(self, points: np.ndarray, groups: dict[tuple[int, str], EdgeGroup]
+                   ) -> list[Term]:
+        """E_rp and E_bp of the edge points ``points`` seated by :meth:`seated_points`."""
+        c = self.config.noise
+        terms: list[Term] = []
+        for (k, label), group in groups.items():
+            terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
+                                          group.pixels, group.ids,
+                                          NoiseModel(c.sigma_px, _EDGE_LOSS, c.w_rp)))
+            sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
+            terms.append(BackProjectionTerm(
+                "E_bp", self.model(label).sdf, group.ids, group.directions, points[group.ids],
+                NoiseModel((sigma_mm, c.sigma_depth_mm), _EDGE_LOSS, c.w_bp), view=k,
+                body=self.body_index(label)))
+        return terms
+

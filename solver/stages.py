@@ -1,0 +1,202 @@
+"""Runs a method's stage table (:mod:`.schedule`) on a shared state: the optimiser stages,
+with the steps between them (pin triangulation, edge-point seating, the bone stage's checks).
+
+Every method starts from the same global image alignment and triangulates the pins from
+their contours once the views are known, so the methods differ only in their energy and in
+what is estimated when."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from slamtka.solver import gates
+from slamtka.solver.diagnostics import outline_fits
+from slamtka.solver.measurement import fit_resection_plane
+from slamtka.solver.optimizer import (
+    IterationInfo,
+    LMOptions,
+    RobustLoss,
+    SolveReport,
+    State,
+    Term,
+    correspond,
+    levenberg_marquardt,
+)
+from slamtka.solver.problem import InitialGuess, JointProblem
+from slamtka.solver.schedule import SCHEDULES, Held, Stage, Step
+
+__all__ = ["StageRunner", "StagesResult"]
+
+log = logging.getLogger("slamtka.solver")
+
+
+class _SettledAngles:
+    """Iteration callback that ends a stage once an accepted step moved neither resection
+    angle (CTR, STR) by more than ``ScheduleConfig.settled_angle_deg``."""
+
+    def __init__(self, problem: JointProblem, state: State):
+        self.problem = problem
+        self.angles = self._angles(state)
+
+    def _angles(self, state: State) -> np.ndarray:
+        plan = self.problem.plan
+        plane = fit_resection_plane(list(state.poses[self.problem.n_views:]), plan.pin_length(),
+                                    plan.landmarks)
+        return np.degrees([plane.ctr, plane.str_])
+
+    def __call__(self, info: IterationInfo) -> str | None:
+        angles = self._angles(info.state)
+        moved = float(np.max(np.abs(angles - self.angles)))
+        self.angles = angles
+        limit = self.problem.config.schedule.settled_angle_deg
+        if moved > limit:
+            return None
+        return f"resection angles settled (moved {moved:.4f} <= {limit} deg)"
+
+
+@dataclass
+class StagesResult:
+    """The final state, the terms of the final energy (for the covariance and residuals)
+    and the report of the last optimiser stage."""
+
+    state: State
+    terms: list[Term]
+    report: SolveReport
+
+
+class StageRunner:
+    """The stages of the configured method, run one after another; ``problem`` is replaced
+    as the bone stage drops foreign edges and matches pin labels."""
+
+    def __init__(self, problem: JointProblem, initial: InitialGuess,
+                 callback: Callable[[str, IterationInfo], None] | None):
+        self.problem, self.callback = problem, callback
+        self.schedule = SCHEDULES[problem.config.method]
+        self.odometry = problem.odometry_terms(initial) if self.schedule.odometry else []
+        self.iterations, self.seconds = 0, 0.0
+        self.renamed: list[str] = []  # views whose pin names were swapped
+        self.unclear_naming: list[str] = []  # views whose pin names the sightings leave open
+
+    def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
+           name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
+        """One optimiser stage; with ``until_settled`` it also ends once the resection
+        angles stop moving (:class:`_SettledAngles`)."""
+        settled = _SettledAngles(self.problem, state) if until_settled else None
+
+        def stage(info: IterationInfo) -> str | None:
+            if self.callback is not None:
+                self.callback(name, info)
+            return None if settled is None else settled(info)
+
+        state, report = levenberg_marquardt(terms, state, held, options, stage)
+        self.iterations += report.iterations
+        self.seconds += report.seconds
+        return state, report
+
+    def run(self, state: State) -> StagesResult:
+        """Every stage of the method's table in order (:mod:`.schedule`)."""
+        result = StagesResult(state, [], SolveReport(False, "not run", 0, 0.0, {}, 0.0, []))
+        for stage in self.schedule.stages:
+            if stage.step is Step.BONE_SILHOUETTE:
+                result, stopped = self._bone(stage, result)
+                if stopped:
+                    return result
+            elif stage.step is Step.TRIANGULATE_PINS:
+                n = self.problem.n_views
+                pins = self.problem.triangulated_pins(result.state.poses)
+                result.state = State(result.state.poses[:n] + pins, result.state.points)
+            elif stage.step is Step.SILHOUETTES:
+                result = self._silhouettes(stage, result)
+            elif stage.step is Step.EDGES:
+                result = self._edges(stage, result)
+            else:
+                result = self._joint(stage, result)
+        return result
+
+    def _held(self, stage: Stage) -> np.ndarray:
+        return self.problem.fixed_dofs(views=stage.held is Held.VIEWS, pins=stage.held is Held.PINS)
+
+    def _options(self, stage: Stage) -> LMOptions:
+        assert stage.budget is not None
+        options: LMOptions = getattr(self.problem.config.schedule, stage.budget)
+        return options
+
+    def _odometry(self, stage: Stage) -> list[Term]:
+        return self.odometry if stage.odometry else []
+
+    def _tight(self) -> RobustLoss:
+        return RobustLoss("cauchy", self.problem.config.schedule.coarse_loss_scales[-1])
+
+    def _bone(self, stage: Stage, result: StagesResult) -> tuple[StagesResult, bool]:
+        """Views on the bone's silhouette, with a robust scale shrinking from wide to tight;
+        then the checks that need the views on the bone. True when the solve stops here."""
+        p, c = self.problem, self.problem.config
+        state = result.state
+        for scale in c.schedule.coarse_loss_scales:
+            terms = p.silhouette_terms(stage.labels, 1.0, RobustLoss("cauchy", scale),
+                                       light=scale >= c.schedule.light_mesh_min_scale,
+                                       thinned=stage.thinned)
+            state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
+                               self._options(stage), f"{stage.name} x{scale:g}")
+        if c.sampling.foreign_edge_px is not None:
+            p = self.problem = p.attributed(state.poses)
+        astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
+                                      c.gates.max_coarse_bone_median_px, c.gates)
+        if astray is not None:
+            # Lost already: the caller may restart from a global search at once.
+            final = list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight()))
+            correspond(final, state)
+            return StagesResult(state, final, SolveReport(
+                False, f"{astray} after the bone stage", self.iterations, 0.0, {}, self.seconds, [])), True
+        p, self.renamed, self.unclear_naming = p.relabelled(state.poses)
+        self.problem = p
+        for view_id in self.renamed:
+            log.info("view %s: the pin labels were swapped to match the other views", view_id)
+        return StagesResult(state, result.terms, result.report), False
+
+    def _silhouettes(self, stage: Stage, result: StagesResult) -> StagesResult:
+        """E_mp of the stage's models (only the final energy, without a budget)."""
+        terms = self.problem.silhouette_terms(stage.labels, 1.0, self._tight(),
+                                              thinned=stage.thinned) + self._odometry(stage)
+        if stage.budget is None:
+            correspond(terms, result.state)
+            return StagesResult(result.state, terms, result.report)
+        state, report = self.lm(terms, result.state, self._held(stage), self._options(stage),
+                                stage.name)
+        return StagesResult(state, terms, report)
+
+    def _edges(self, stage: Stage, result: StagesResult) -> StagesResult:
+        """The stage's edge points seated on their rays, E_rp + E_bp only."""
+        p = self.problem
+        points, groups = p.seated_points(result.state.poses, labels=stage.labels)
+        terms = p.edge_terms(points, groups)
+        state, report = self.lm(terms, State(result.state.poses, points), self._held(stage),
+                                self._options(stage), stage.name)
+        return StagesResult(state, terms, report)
+
+    def _joint(self, stage: Stage, result: StagesResult) -> StagesResult:
+        """The joint energy with edge points seated where their rays graze the models; after
+        ``joint_seated_iterations`` seated again at the poses reached, and again while a
+        stage still turns the poses by more than ``reseat_turn_deg``."""
+        p, c = self.problem, self.problem.config.schedule
+        options = replace(self._options(stage), max_iterations=c.joint_seated_iterations)
+        name, seatings, state = stage.name, 0, result.state
+        while True:
+            points, groups = p.seated_points(state.poses, labels=stage.labels)
+            terms = p.edge_terms(points, groups) + p.silhouette_terms(
+                stage.labels, p.config.noise.w_mp, RobustLoss("cauchy", 3.0),
+                freeze_outline=True) + self._odometry(stage)
+            seated_at = state.poses
+            state, report = self.lm(terms, State(state.poses, points), self._held(stage), options,
+                                    name, until_settled=True)
+            seatings += 1
+            turned_deg = np.degrees(max(T.rotation_angle_to(U)
+                                        for T, U in zip(seated_at, state.poses)))
+            if seatings >= c.max_seatings or (seatings > 1 and turned_deg <= c.reseat_turn_deg):
+                break
+            options, name = self._options(stage), f"{stage.name} reseated"
+        return StagesResult(state, terms, report)
