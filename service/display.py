@@ -20,6 +20,8 @@ from datetime import datetime
 import numpy as np
 from pydicom.dataset import Dataset
 
+from slamtka.service.refusals import RefusalCode
+
 __all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
            "STATUS_SERIES_NUMBER"]
 
@@ -37,18 +39,20 @@ class Status:
     action: str
 
 
-def advice(reason: str, min_separation_deg: float) -> str:
-    """What to do about a refusal ``reason`` (the pipeline's or the solver's), in words."""
-    text = reason.lower()
-    if "no plan" in text:
+def advice(code: str, min_separation_deg: float) -> str:
+    """What to do about a refusal (its :class:`RefusalCode`), in words."""
+    if code == RefusalCode.NO_PLAN:
         return "add the patient's plan, then re-run the case (slamtka case rerun CASE)"
-    if "too close" in text or "separation" in text:
+    if code == RefusalCode.VIEWS_TOO_CLOSE:
         return f"take another view at least {min_separation_deg:.0f} deg from the others"
-    if "usable view" in text or "view(s)" in text:
+    if code == RefusalCode.PINS_INDISTINCT:
+        return "take another view from a different angle, so that the two pins are told apart"
+    if code in (RefusalCode.TOO_FEW_VIEWS, RefusalCode.TOO_FEW_CONTOURS):
         return f"take a second view at least {min_separation_deg:.0f} deg from the first"
-    if "calibration" in text:
+    if code == RefusalCode.NO_CALIBRATION:
         return "check the C-arm calibration, then re-run the case (slamtka case rerun CASE)"
-    if "contour" in text or "pin" in text:
+    if code in (RefusalCode.BONE_OUTLINE_INSUFFICIENT, RefusalCode.PIN_NOT_SEEN,
+                RefusalCode.GATE_FAILED):
         return "take a new view with both pins and the tibia clearly visible"
     return "take a new pair of views; if it persists, measure by hand"
 

@@ -108,7 +108,13 @@ def _families(status: dict | None) -> Iterator:
     yield GaugeMetricFamily("slamtka_up", "1 when the service is running, fresh and its worker "
                             "alive", value=int(health.up))
     status = status or {}
-    for name, value in sorted((status.get("metrics") or {}).items()):
+    metrics = dict(status.get("metrics") or {})
+    refusals = CounterMetricFamily("slamtka_refusals", "refused runs by refusal code",
+                                   labels=["code"])
+    for code, count in sorted((metrics.pop("refusals", None) or {}).items()):
+        refusals.add_metric([code], count)
+    yield refusals
+    for name, value in sorted(metrics.items()):
         if value is None:
             continue
         if not name.startswith("run_seconds"):  # the run times are gauges, the rest counts

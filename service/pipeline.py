@@ -41,6 +41,7 @@ from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
 from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
+from slamtka.service.refusals import Refusal, RefusalCode
 from slamtka.service.results import build_result, validate_result
 from slamtka.service.sender import OutgoingObject
 from slamtka.service.spool import Spool
@@ -274,16 +275,24 @@ class Pipeline:
         lap("frames")
         self._check_calibration(items, recorder, reasons)
         lap("calibration")
-        plan, outcome, observations, initial = None, None, [], None
+        plan, solved, observations, initial = None, None, [], None
+        refusal: Refusal | None = None
         try:
             plan = self.plans.find(case.patient_id, case.laterality)
         except ValueError as exc:
-            reasons.insert(0, str(exc))
+            refusal = Refusal.of(RefusalCode.NO_PLAN, str(exc))
         usable = [i for i in items if i.used]
         if plan is not None and len(usable) < 2:
-            reasons.insert(0, f"only {len(usable)} usable view(s); at least two are needed")
+            refusal = Refusal.of(
+                RefusalCode.TOO_FEW_VIEWS if self.calibration is not None
+                else RefusalCode.NO_CALIBRATION,
+                f"only {len(usable)} usable view(s); at least two are needed")
         elif plan is not None:
-            outcome, observations, initial = self._measure(plan, usable, recorder, reasons, lap)
+            solved, observations, initial = self._measure(plan, usable, recorder, reasons, lap)
+        if isinstance(solved, Refusal):
+            refusal, outcome = solved, None
+        else:
+            outcome = solved
 
         recorder.stage("results")
         refused = self._refused_sources(case, len(items), reasons)
@@ -303,7 +312,7 @@ class Pipeline:
             outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=observations,
             calibration=None if self.calibration is None else {
                 "id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
-            initial=initial, reasons=reasons, timings=timings,
+            initial=initial, refusal=refusal, reasons=reasons, timings=timings,
             outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
                      "sr_sop_instance_uid": uids["sr"],
                      "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
@@ -369,8 +378,9 @@ class Pipeline:
 
     def _measure(self, plan: Plan, usable: list[_ViewInput], recorder: CaseRecorder,
                  reasons: list[str], lap: Callable[[str], None],
-                 ) -> tuple[SolveOutcome | None, list[ViewObservation], InitialGuess]:
-        """Initial poses, contours and the joint solve of the usable views."""
+                 ) -> tuple[SolveOutcome | Refusal, list[ViewObservation], InitialGuess]:
+        """Initial poses, contours and the joint solve of the usable views (or the refusal
+        of too few views with contours)."""
         recorder.plan(plan)
         recorder.stage("initial_poses")
         start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
@@ -403,9 +413,9 @@ class Pipeline:
         recorder.solver_inputs(self._solver_inputs(plan, observations, initial))
         lap("contours")
         if len(observations) < 2:
-            reasons.insert(0, f"only {len(observations)} view(s) with contours; at least two "
-                              "are needed")
-            return None, observations, initial
+            return Refusal.of(RefusalCode.TOO_FEW_CONTOURS,
+                              f"only {len(observations)} view(s) with contours; at least two "
+                              "are needed"), observations, initial
 
         recorder.stage("solve")
         outcome = solve_joint(plan, observations, initial, _SOLVER_CONFIG,
@@ -520,7 +530,8 @@ class Pipeline:
         """The SR's notes in words: why not measured and what to do; the measurement history."""
         notes = []
         if doc["status"] != "measured":
-            notes += [("reason", doc["reason"]), ("action", advice(doc["reason"], min_separation_deg))]
+            notes += [("reason", doc["reason"]),
+                      ("action", advice(_refusal_code(doc), min_separation_deg))]
         m = doc.get("measurement")
         if m is not None:
             text = f"pin set {m['pin_set']}, measurement {m['number']} ({m['started_by']})"
@@ -544,7 +555,7 @@ class Pipeline:
         head = [] if m is None else [f"Pin set {m['pin_set']}, measurement {m['number']}"]
         if doc["status"] != "measured":
             return ["NOT MEASURED", *head, doc["reason"],
-                    "Next: " + advice(doc["reason"], min_separation_deg)]
+                    "Next: " + advice(_refusal_code(doc), min_separation_deg)]
         a, t, d = doc["angles"], doc["target"], doc["deviation"]
         change = change_line(m["previous"], doc) if m is not None else None
         clock = [f"Note: {s['view_id']}: {s['clock']['message']}" for s in doc["sources"]
@@ -560,3 +571,8 @@ class Pipeline:
         ds.save_as(buffer, enforce_file_format=True)
         write_atomic(path, buffer.getvalue())
         return OutgoingObject(path, kind, sop_class, str(ds.SOPInstanceUID))
+
+
+def _refusal_code(doc: dict) -> str:
+    """The refusal code of a not-measured document (``other`` for one without a refusal)."""
+    return (doc.get("refusal") or {}).get("code") or RefusalCode.OTHER

@@ -5,7 +5,8 @@ knows (case and source UIDs, calibration id and hash, encoder readings and how e
 initialised, timings, where the outputs are) and validates the whole against the published
 JSON Schema ``service/schemas/result.schema.json``; an invalid document is a bug and raises.
 A case refused before the solver ran (no plan, no usable view) gets the same document with
-the solver-side members ``null`` and the reasons filled in.
+the solver-side members ``null`` and the reasons filled in. A refused case also carries its
+:class:`~slamtka.service.refusals.Refusal` (``refusal``: code, detail, may_restart).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from importlib.resources import files
 
 import jsonschema
 
+from slamtka.service.refusals import Refusal, solver_refusal
 from slamtka.solver.anatomy import SIGN_CONVENTION
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.plan import Plan
@@ -58,26 +60,30 @@ def _refused_base(case_id: str, plan: Plan | None, reason: str) -> dict:
 def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
                  outcome: SolveOutcome | None, method: str, plan: Plan | None,
                  views: list[ViewObservation], calibration: dict | None,
-                 initial: InitialGuess | None, reasons: list[str], timings: dict[str, float],
+                 initial: InitialGuess | None, refusal: Refusal | None, reasons: list[str],
+                 timings: dict[str, float],
                  outputs: dict, measurement: dict | None = None) -> dict:
     """The validated result document of one pipeline run.
 
-    ``reasons`` are the pipeline's own findings (views left out, a refusal before the solve);
-    the solver's refusal reason is appended to them. ``method`` is the one the solver was
+    ``refusal`` is the pipeline's own, before the solve (then ``outcome`` is None); the
+    solver's is named from its reason. ``reasons`` are the pipeline's other findings (views
+    left out): the refusal's detail goes first, the solver's reason last. ``method`` is the one the solver was
     configured with (``SolveOutcome`` does not say). ``measurement``: the run's place in
     the re-measurement loop (pin set, number, previous measurement).
     """
     reasons = list(reasons)
     if outcome is None:
-        if not reasons:
+        if refusal is None:
             raise ValueError("a run without a solve must say why")
-        doc = _refused_base(case_id, plan, reasons[0])
+        reasons.insert(0, refusal.detail)
+        doc = _refused_base(case_id, plan, refusal.detail)
     else:
         if plan is None or calibration is None:
             raise ValueError("a solved run needs its plan and calibration")
         doc = result_document(case_id, outcome, plan, views, calibration["id"], method)
         if outcome.status != "measured":
             reasons.append(outcome.reason)
+            refusal = solver_refusal(outcome.reason)
     measured = doc["status"] == "measured"
     verdict = ("not_measured" if not measured
                else "pass" if doc["deviation"]["within_tolerance"] else "fail")
@@ -87,6 +93,7 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
         "run_id": run_id,
         "reason": None if measured else (doc["reason"] or reasons[0]),
         "reasons": reasons,
+        "refusal": None if measured or refusal is None else refusal.to_json(),
         "verdict": verdict,
         "case": case,
         "sources": sources,

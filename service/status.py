@@ -39,6 +39,11 @@ _COUNTED = {"received": "instances_received", "rejected": "instances_rejected",
             "send_failed": "send_failures", "send_abandoned": "sends_abandoned"}
 
 
+def _as_dict(value: object) -> dict:
+    """A carried section, or nothing if a damaged snapshot holds something else there."""
+    return value if isinstance(value, dict) else {}
+
+
 class Metrics:
     """Counters fed by the audit log (one source of truth) and pipeline timings."""
 
@@ -49,6 +54,10 @@ class Metrics:
         for name, value in (carried or {}).items():
             if name in self.counters and isinstance(value, int) and value >= 0:
                 self.counters[name] = value
+        # refused runs by refusal code (the result's ``refusal.code``), for the metrics
+        self.refusals: Counter[str] = Counter(
+            {code: n for code, n in _as_dict((carried or {}).get("refusals")).items()
+             if isinstance(n, int) and n >= 0})
         self.run_seconds: list[float] = []
         self._lock = threading.Lock()
 
@@ -62,11 +71,13 @@ class Metrics:
                 self.counters["runs_measured" if entry.get("status") == "measured"
                               else "runs_not_measured"] += 1
                 self.run_seconds.append(float(entry.get("seconds", 0.0)))
+                if entry.get("refusal_code"):
+                    self.refusals[entry["refusal_code"]] += 1
 
     def snapshot(self) -> dict:
         with self._lock:
             recent = sorted(self.run_seconds[-100:])
-            return {**self.counters,
+            return {**self.counters, "refusals": dict(sorted(self.refusals.items())),
                     "run_seconds_median": recent[len(recent) // 2] if recent else None,
                     "run_seconds_last": self.run_seconds[-1] if self.run_seconds else None}
 

@@ -71,6 +71,20 @@ def test_counters_continue_from_the_previous_run():
     assert counters["runs_failed"] == 0 and "unknown" not in counters
 
 
+def test_refused_runs_are_counted_per_refusal_code_and_carried_over():
+    metrics = Metrics({"refusals": {"no_plan": 2, "bad": -1}})
+    for code in ("no_plan", "pin_not_seen", None):
+        metrics.observe({"event": "processed", "status": "measured" if code is None
+                         else "not_measured", "refusal_code": code, "seconds": 0.5})
+    counters = metrics.snapshot()
+    assert counters["refusals"] == {"no_plan": 3, "pin_not_seen": 1}
+    assert counters["runs_not_measured"] == 2 and counters["runs_measured"] == 1
+    text = prometheus_text({**_snapshot(), "metrics": counters})
+    assert 'slamtka_refusals_total{code="no_plan"} 3.0' in text
+    assert 'slamtka_refusals_total{code="pin_not_seen"} 1.0' in text
+    assert Metrics({"refusals": "damaged"}).snapshot()["refusals"] == {}
+
+
 def test_each_case_step_is_one_info_line(caplog):
     caplog.set_level(logging.DEBUG, logger="slamtka.case")
     tell({"event": "received", "sop_instance_uid": "1.2.3", "calling_ae": "CARM", "peer": "10.0.0.5"})

@@ -19,6 +19,7 @@ from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, r
 from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
 from slamtka.service.frames import encode_frame
 from slamtka.service.pipeline import plane_polygon, result_uid
+from slamtka.service.refusals import Refusal, RefusalCode, solver_refusal
 from slamtka.service.results import build_result, result_schema, validate_result
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.simulate import SimulationConfig, simulate_case
@@ -63,7 +64,7 @@ def _document(plan, case, outcome) -> dict:
         sources=_sources(2), outcome=outcome, method="slam-noenc", plan=plan, views=case.views,
         calibration={"id": "carm-1", "sha256": "ab" * 32},
         initial=InitialGuess(tuple(case.initial.T_cam_tibia), tuple(case.initial.T_tibia_pin)),
-        reasons=[], timings={"solve_s": 0.4, "total_s": 0.9},
+        refusal=None, reasons=[], timings={"solve_s": 0.4, "total_s": 0.9},
         outputs={"folder": "/out", "recording": "/out/recording.rrd",
                  "sr_sop_instance_uid": generate_uid(), "sc_sop_instance_uids": {}})
 
@@ -94,12 +95,54 @@ def test_refused_document_validates_with_reasons_and_no_angles():
                        case={"patient_id": "P-2", "study_instance_uid": "1.2.3", "laterality": None},
                        sources=_sources(2), outcome=None, method="slam", plan=None, views=[],
                        calibration=None,
-                       initial=None, reasons=["no plan for patient 'P-2'"],
+                       initial=None, refusal=Refusal.of(RefusalCode.NO_PLAN,
+                                                        "no plan for patient 'P-2'"),
+                       reasons=["view3: not initialised, left out (no reading)"],
                        timings={"total_s": 0.1},
                        outputs={"folder": "/o", "recording": "/o/r.rrd",
                                 "sr_sop_instance_uid": "1.2.3.4", "sc_sop_instance_uids": {}})
     assert doc["status"] == "not_measured" and doc["verdict"] == "not_measured"
     assert doc["angles"] is None and doc["reason"] == "no plan for patient 'P-2'"
+    assert doc["reasons"] == ["no plan for patient 'P-2'",
+                              "view3: not initialised, left out (no reading)"]
+    assert doc["refusal"] == {"code": "no_plan", "detail": "no plan for patient 'P-2'",
+                              "may_restart": True}
+
+
+def test_measured_document_has_no_refusal(truth_case):
+    assert _document(*truth_case)["refusal"] is None
+
+
+@pytest.mark.parametrize("reason,code", [
+    ("only 1 view(s); at least two are needed", "too_few_views"),
+    ("too few bone contour points: fewer than two views have at least 40", "bone_outline_insufficient"),
+    ("pin1 is not seen in two views (needs >= 20 contour points in each; seen in 1)",
+     "pin_not_seen"),
+    ("the two pins cannot be told apart in view view2: both namings fit (final cost 1000 against "
+     "1010) and give planes 7.0 deg apart in CTR and 1.0 deg in STR; take a view from another angle",
+     "pins_indistinct"),
+    ("views are too close in angle (4.0 deg apart; at least 15 deg needed)", "views_too_close"),
+    ("the solve did not converge (maximum iterations reached)", "not_converged"),
+    ("geometry is degenerate: angle uncertainty 3.10 deg > 1.00 deg", "degenerate"),
+    ("contours do not fit the models (re-projection RMS 9.1 px > 3.0 px)", "gate_failed"),
+    ("something new", "other"),
+])
+def test_a_solver_refusal_is_named_by_its_code(reason, code):
+    refusal = solver_refusal(reason)
+    assert (refusal.code.value, refusal.detail, refusal.may_restart) == (code, reason, False)
+
+
+def test_the_schema_publishes_every_refusal_code():
+    published = result_schema()["properties"]["refusal"]
+    codes = next(v for v in _walk(published) if isinstance(v, dict) and "enum" in v)["enum"]
+    assert codes == [c.value for c in RefusalCode]
+
+
+def _walk(node):
+    yield node
+    children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
+    for child in children:
+        yield from _walk(child)
 
 
 @pytest.mark.parametrize("tamper,where", [
