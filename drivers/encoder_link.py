@@ -24,11 +24,11 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
 
 import serial
 
-from slamtka.drivers.kinematics import AXIS_UNITS, config_number
+from slamtka.drivers.config_tables import ConfigError, build_table
+from slamtka.drivers.kinematics import AXIS_UNITS
 from slamtka.drivers.protocol import (
     PROTOCOL_VERSION,
     DeviceIdentity,
@@ -93,11 +93,11 @@ class LinkConfig:
         }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
-            raise ValueError(f"encoder link configuration: invalid {', '.join(bad)} "
+            raise ConfigError(f"encoder link configuration: invalid {', '.join(bad)} "
                              f"({', '.join(f'{b}={getattr(self, b)!r}' for b in bad)})")
         unknown = set(self.required_axes) - set(AXIS_UNITS)
         if unknown:
-            raise ValueError(f"encoder link configuration: unknown required axes {sorted(unknown)}")
+            raise ConfigError(f"encoder link configuration: unknown required axes {sorted(unknown)}")
 
     @property
     def history_capacity(self) -> int:
@@ -105,23 +105,7 @@ class LinkConfig:
 
     @staticmethod
     def from_config(d: Mapping) -> LinkConfig:
-        names = {f.name: f for f in fields(LinkConfig)}
-        unknown = set(d) - set(names)
-        if unknown:
-            raise ValueError(f"encoder link configuration: unknown keys {sorted(unknown)}; "
-                             f"allowed: {sorted(names)}")
-        kwargs: dict[str, Any] = {}
-        for key, value in d.items():
-            default = getattr(LinkConfig, key)
-            if not isinstance(default, tuple):
-                kwargs[key] = config_number(value, f"encoder link configuration: {key}",
-                                            integer=isinstance(default, int))
-            elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
-                kwargs[key] = tuple(value)
-            else:
-                raise ValueError(f"encoder link configuration: {key} must be a list of names, "
-                                 f"got {value!r}")
-        return LinkConfig(**kwargs)
+        return build_table(LinkConfig, d, "link")
 
     def to_config(self) -> dict:
         return {f.name: (list(v) if isinstance(v := getattr(self, f.name), tuple) else v)

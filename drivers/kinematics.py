@@ -25,18 +25,18 @@ Units: joint values in degrees and millimetres (as the encoders report them), po
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from slamtka.drivers.config_tables import check_keys, config_number
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.geometry import Pose, rotation_about, so3_log
 
 __all__ = [
     "AXIS_UNITS", "JointReading", "ChainJoint", "CArmKinematics", "PatientSetup", "RelativePose",
-    "initial_view_poses", "dicom_angles", "AngleCheck", "check_dicom_angles", "config_number",
+    "initial_view_poses", "dicom_angles", "AngleCheck", "check_dicom_angles",
 ]
 
 # The axes a C-arm reports and their units; "sid" is optional (many C-arms have a fixed SID).
@@ -111,25 +111,6 @@ def _limits(value: Sequence[float], what: str) -> tuple[float, float]:
     return lo, hi
 
 
-def config_number(value, what: str, integer: bool = False) -> float | int:
-    """A number from a configuration table. A bool, a string or a fraction for a count is
-    refused rather than coerced (``true`` would become 1, ``100.7`` Hz would become 100)."""
-    kind = "int (must be a whole number)" if integer else "float (must be a number)"
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{what} = {value!r} is not of type {kind}")
-    if not math.isfinite(value):
-        raise ValueError(f"{what} = {value!r} is not finite")
-    if integer and value != int(value):
-        raise ValueError(f"{what} = {value!r} is not of type {kind}")
-    return int(value) if integer else float(value)
-
-
-def _check_keys(d: Mapping, allowed: set[str], what: str) -> None:
-    unknown = set(d) - allowed
-    if unknown:
-        raise ValueError(f"{what}: unknown keys {sorted(unknown)}; allowed: {sorted(allowed)}")
-
-
 @dataclass(frozen=True)
 class ChainJoint:
     """One joint of the chain: revolute for an angle axis, prismatic for a length axis."""
@@ -168,7 +149,7 @@ class ChainJoint:
 
     @staticmethod
     def from_config(d: Mapping) -> ChainJoint:
-        _check_keys(d, {"axis", "direction", "pivot_mm", "limits", "sd"}, "chain joint")
+        check_keys(d, {"axis", "direction", "pivot_mm", "limits", "sd"}, "chain joint")
         try:
             return ChainJoint(d["axis"], d["direction"], d["limits"], float(d["sd"]),
                               d.get("pivot_mm", (0.0, 0.0, 0.0)))
@@ -271,7 +252,7 @@ class CArmKinematics:
     @staticmethod
     def from_config(d: Mapping) -> CArmKinematics:
         """A model from a configuration table; absent keys take the mobile C-arm defaults."""
-        _check_keys(d, {"name", "source_to_isocentre_mm", "sid_nominal_mm", "sid_limits_mm",
+        check_keys(d, {"name", "source_to_isocentre_mm", "sid_nominal_mm", "sid_limits_mm",
                         "sid_sd_mm", "detector_roll_deg", "chain"}, "C-arm kinematics")
         kwargs = {k: v for k, v in d.items() if k != "chain"}
         if not isinstance(kwargs.get("name", ""), str):
@@ -325,7 +306,7 @@ class PatientSetup:
 
     @staticmethod
     def from_config(landmarks: Landmarks, d: Mapping) -> PatientSetup:
-        _check_keys(d, {"superior_carm", "anterior_carm", "isocentre_in_anat_mm", "reference_view",
+        check_keys(d, {"superior_carm", "anterior_carm", "isocentre_in_anat_mm", "reference_view",
                         "rot_sd_deg", "trans_sd_mm"}, "patient set-up")
         return PatientSetup(landmarks.T_tibia_anat(), **d)
 

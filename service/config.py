@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from slamtka.drivers.config_tables import ConfigError, build_table
+
 __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destination",
            "CallerBinding", "load_config", "config_from_dict", "validate_ae_title",
            "normalise_fingerprint", "ENV_PREFIX"]
@@ -31,10 +33,6 @@ __all__ = ["ConfigError", "ServiceConfig", "DicomConfig", "TlsConfig", "Destinat
 ENV_PREFIX = "SLAMTKA_"
 _AE_TITLE = re.compile(r"^[\x20-\x5b\x5d-\x7e]{1,16}$")  # DICOM AE VR: no backslash, no control
 _OBJECT_KINDS = ("sr", "sc")  # the DICOM results a destination can be sent (OutgoingObject.kind)
-
-
-class ConfigError(ValueError):
-    """A configuration value is missing, unknown, mistyped or out of range."""
 
 
 def validate_ae_title(value: str, where: str) -> str:
@@ -392,62 +390,6 @@ class ServiceConfig:
 
 # -- generic typed construction --------------------------------------------------------------
 
-def _convert(value: Any, hint: Any, where: str, base: Path | None) -> Any:
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        options = [a for a in typing.get_args(hint) if a is not type(None)]
-        if value is None or value == "":
-            return None
-        return _convert(value, options[0], where, base)
-    if dataclasses.is_dataclass(hint):
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a table")
-        return _build(hint, value, where, base)
-    if origin is list:
-        if not isinstance(value, list):
-            raise ConfigError(f"{where}: expected a list")
-        (item,) = typing.get_args(hint)
-        return [_convert(v, item, f"{where}[{i}]", base) for i, v in enumerate(value)]
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    if hint is dict:
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a table")
-        return dict(value)
-    if hint is Path:
-        if not isinstance(value, (str, Path)):
-            raise ConfigError(f"{where}: expected a path, got {value!r}")
-        path = Path(value).expanduser()
-        return path if path.is_absolute() or base is None else base / path
-    raise ConfigError(f"{where}: unsupported type {hint}")  # a programming error, named
-
-
-def _build(cls: type, table: Mapping[str, Any], where: str, base: Path | None) -> Any:
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.name != "source"}
-    unknown = sorted(set(table) - names)
-    if unknown:
-        prefix = f"{where}." if where else ""
-        raise ConfigError(f"{prefix}{unknown[0]}: unknown key (known: {', '.join(sorted(names))})")
-    kwargs = {key: _convert(value, hints[key], f"{where}.{key}" if where else key, base)
-              for key, value in table.items()}
-    return cls(**kwargs)
-
-
 def _parse_env_value(text: str, hint: Any, where: str) -> Any:
     """An environment string as the TOML value it stands for."""
     origin = typing.get_origin(hint)
@@ -511,7 +453,7 @@ def config_from_dict(table: dict, base: Path | None = None,
                      environ: Mapping[str, str] | None = None) -> ServiceConfig:
     """A validated configuration from a parsed TOML table (and the environment)."""
     table = _apply_env(copy.deepcopy(table), os.environ if environ is None else environ)
-    config = _build(ServiceConfig, table, "", base)
+    config = build_table(ServiceConfig, table, "", base)
     config.check()
     return config
 

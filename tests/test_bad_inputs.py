@@ -278,8 +278,8 @@ def test_serve_reports_a_port_in_use(tmp_path, capsys):
     ("setup", {"trans_sd_mm": math.nan}, "carm.setup: trans_sd_mm = nan is not finite"),
     ("setup", {"reference_view": 7}, "carm.setup: reference_view 7 must be 0 or 1"),
     ("setup", {"reference_view": -1}, "carm.setup: reference_view must be a view index"),
-    ("link", {"rate_hz": True}, "carm.link: .*rate_hz = True is not of type int"),
-    ("link", {"rate_hz": 100.7}, "carm.link: .*rate_hz = 100.7 is not of type int"),
+    ("link", {"rate_hz": True}, "carm.link: link.rate_hz: expected an integer, got True"),
+    ("link", {"rate_hz": 100.7}, "carm.link: link.rate_hz: expected an integer, got 100.7"),
     ("kinematics", {"name": 5}, "carm.kinematics: .*name must be a string"),
 ])
 def test_driver_configuration_is_checked_naming_the_key(tmp_path, section, values, message):
