@@ -82,7 +82,7 @@ class Admission:
         return None
 
     def _holders(self, kind: str) -> str:
-        by_address = Counter()
+        by_address: Counter[str] = Counter()
         for ticket, count in self._held.items():
             if ticket.kind == kind:
                 by_address[ticket.address] += count

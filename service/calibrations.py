@@ -153,7 +153,7 @@ class CalibrationSet:
 
     def __init__(self, installed: list[Calibration], default: Calibration | None,
                  match: str = "device_serial_number", folder: Path | None = None,
-                 on_change: Callable[[str, dict], None] | None = None):
+                 on_change: Callable[[str, dict], object] | None = None):
         if match not in DEVICE_KEYS:
             raise ValueError(f"calibration match {match!r} is not one of {sorted(DEVICE_KEYS)}")
         self.installed, self.default, self.match = installed, default, match
@@ -163,7 +163,7 @@ class CalibrationSet:
 
     @classmethod
     def load(cls, folder: Path, default: Path | None, match: str,
-             on_change: Callable[[str, dict], None] | None = None) -> CalibrationSet:
+             on_change: Callable[[str, dict], object] | None = None) -> CalibrationSet:
         """Read and verify every calibration (at start-up); none at all is refused."""
         installed = CalibrationStore(folder).installed()
         calibration = None if default is None else load_calibration(default)

@@ -81,7 +81,7 @@ class Case:
         return [v for v in self.ordered() if v.usable][-max_views:]
 
     def separation_deg(self, views: list[View]) -> float:
-        return view_separation_deg([v.beam_anat for v in views])
+        return view_separation_deg([v.beam_anat for v in views if v.beam_anat is not None])
 
     def describe(self) -> dict:
         views = list(self.views.values())  # a snapshot: the worker may be adding a view

@@ -420,7 +420,7 @@ def _env_keys(cls: type, path: tuple[str, ...] = ()) -> dict[str, tuple[tuple[st
         if f.name == "source" or typing.get_origin(hint) is list and dataclasses.is_dataclass(
                 typing.get_args(hint)[0]):
             continue  # tables of tables (destinations, dicom.callers) live in the file only
-        if dataclasses.is_dataclass(hint):
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             out.update(_env_keys(hint, path + (f.name,)))
         elif hint is not dict:
             key = path + (f.name,)

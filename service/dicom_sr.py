@@ -26,7 +26,7 @@ Identification Sequence. Sign convention: CTR positive = varus, STR positive = p
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -131,7 +131,7 @@ def _groups(doc: dict, geometry: SrGeometry | None, algorithm: hd.sr.AlgorithmId
 
 def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
              series_uid: str, sop_instance_uid: str, uid_for: Callable[[str], str],
-             content_datetime: datetime, notes: list[tuple[str, str]] = (),
+             content_datetime: datetime, notes: Sequence[tuple[str, str]] = (),
              manufacturer: str = "slamtka", institution: str = "",
              device_name: str = "SLAMTKA", series_number: int = SR_SERIES_NUMBER,
              series_description: str = "slamtka resection plane") -> Dataset:

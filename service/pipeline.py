@@ -233,7 +233,7 @@ class Pipeline:
 
     # -- the run --------------------------------------------------------------------------
     def run(self, case: Case, views: list[View],
-            on_output: Callable[[OutgoingObject], None] = lambda obj: None, *,
+            on_output: Callable[[OutgoingObject], object] = lambda obj: None, *,
             run_id: str | None = None, measurement: dict | None = None,
             triggered: datetime | None = None, min_separation_deg: float = 15.0) -> RunOutcome:
         """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result once every
@@ -260,7 +260,7 @@ class Pipeline:
 
     def _run(self, case: Case, views: list[View], run_id: str, folder: Path,
              recorder: CaseRecorder, started: float,
-             on_output: Callable[[OutgoingObject], None], measurement: dict | None,
+             on_output: Callable[[OutgoingObject], object], measurement: dict | None,
              when: datetime, min_separation_deg: float) -> RunOutcome:
         timings: dict[str, float] = {}
         reasons: list[str] = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydicom.dataset import Dataset
@@ -43,7 +44,8 @@ def layout_cases(ds: Dataset, seed: int = 0) -> list[LayoutCase]:
     garbage = np.random.default_rng(seed).integers(0, 1 << 16, v.shape)
     signed = v - 2048  # the same image as two's complement values, offset binary on decode
     high = dict(HighBit=15)
-    cases = [
+    # (name, stored words, attributes changed, the pixels decoded or the refusal's keyword)
+    cases: list[tuple[str, np.ndarray, dict[str, Any], np.ndarray | str]] = [
         ("12 bits stored, overlay bits above HighBit 11", v | (garbage & 0xF000), {}, v),
         ("12 bits stored in the high bits (HighBit 15)", v << 4 | garbage & 0xF, high, v),
         ("12 bits stored at HighBit 13, garbage either side",

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -90,9 +91,9 @@ class CaseRecorder:
         if frame.acquisition_datetime is not None:
             self.rec.set_time("acquisition_time", timestamp=frame.acquisition_datetime)
         self.rec.log(f"views/{view_id}/image", rr.Image(frame.pixels))
+        values: dict[str, Any] = {k: (np.nan if v is None else v) for k, v in positioner.items()}
         self.rec.log(f"views/{view_id}/positioner",
-                     rr.AnyValues(**{k: (np.nan if v is None else v) for k, v in positioner.items()},
-                                  sop_instance_uid=frame.sop_instance_uid))
+                     rr.AnyValues(**values, sop_instance_uid=frame.sop_instance_uid))
 
     def encoder(self, view_id: str, source: str, reading: dict | None) -> None:
         self.rec.log(f"views/{view_id}/encoder",
@@ -183,5 +184,5 @@ class CaseRecorder:
         does otherwise, so a service writing one recording per run would grow without end."""
         self.rec.flush()
         self.rec.disconnect()
-        self.rec = None
+        del self.rec
         rerun_bindings.flush_and_cleanup_orphaned_recordings()

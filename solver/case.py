@@ -160,7 +160,8 @@ def load_case(folder: Path) -> CaseFolder:
         raise ValueError(f"{contours_path}: 'views' must be a list of objects, one per view")
     if not isinstance(initial_views, dict):
         raise ValueError(f"{initial_path}: 'views' must be an object mapping view id to pose")
-    views, poses = [], []
+    views: list[ViewObservation] = []
+    poses: list[Pose] = []
     for entry in entries:
         view_id = str(entry.get("view_id", ""))
         if view_id not in initial_views:

@@ -218,7 +218,7 @@ def _term_cost(term: Term, lin: Linearization) -> float:
 
 def _evaluate(terms: list[Term], state: State, jacobians: bool):
     lins = [whitened(t, state, jacobians) for t in terms]
-    costs = {}
+    costs: dict[str, float] = {}
     for term, lin in zip(terms, lins):
         costs[term.name] = costs.get(term.name, 0.0) + _term_cost(term, lin)
     return lins, costs
@@ -450,14 +450,15 @@ def pose_covariance(
         return cov, np.zeros_like(cov)
     # b: each shared row's gradient direction on its point, robust weight included.
     by_term = {id(term): (term, lin) for term, lin in zip(terms, lins)}
-    ids, b = [], []
+    id_parts: list[np.ndarray] = []
+    b_parts: list[np.ndarray] = []
     for term in shared.terms:
         term, lin = by_term[id(term)]
         x_idx, Jx = lin.point_jacobian
         w = term.noise.weight * term.noise.loss.weight(np.sum(lin.residuals**2, axis=1))
-        ids.append(x_idx)
-        b.append(w[:, None] * Jx[:, 0, :])
-    ids, b = np.concatenate(ids), np.concatenate(b)
+        id_parts.append(x_idx)
+        b_parts.append(w[:, None] * Jx[:, 0, :])
+    ids, b = np.concatenate(id_parts), np.concatenate(b_parts)
     W, pose_of = ne.coupling
     moved = np.einsum("rkij,rj->rki", W[ids] @ V_inv[ids][:, None], b)  # (R, k, 6)
     # Each shared error's pull on every pose: the rows' pulls summed by error and pose.

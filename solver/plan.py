@@ -22,6 +22,7 @@ import numbers
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -116,7 +117,7 @@ class RigidModel:
     ) -> RigidModel:
         margin = 8.0 * sdf_spacing_mm
         sdf = SignedDistanceField.cached(meshes, sdf_spacing_mm, margin, cache_dir)
-        combined = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        combined = cast(trimesh.Trimesh, trimesh.util.concatenate(meshes)) if len(meshes) > 1 else meshes[0]
         combined = simplified(combined, _SILHOUETTE_MAX_FACES, cache_dir)
         coarse = simplified(combined, _SEARCH_MAX_FACES, cache_dir)
         return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined),

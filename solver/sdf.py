@@ -17,6 +17,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import igl
 import numpy as np
@@ -83,7 +84,7 @@ def _exact_signed_distance(
     return result
 
 
-def write_arrays(path: Path, **arrays: np.ndarray) -> None:
+def write_arrays(path: Path, **arrays: Any) -> None:
     """Write ``arrays`` to an ``.npz`` cache entry atomically, so a crash never leaves a
     truncated entry behind; each writer has its own temporary file, so processes building
     the same entry at once (parallel test workers, a study's worker pool) cannot move each

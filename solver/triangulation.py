@@ -74,7 +74,7 @@ def _best_ends(sightings: list[PinSighting], length_mm: float | None
             ends.append(triangulate_rays(sources, rays))
         score = ends[0][1] + ends[1][1]
         if length_mm is not None:
-            score += _LENGTH_WEIGHT * abs(np.linalg.norm(ends[1][0] - ends[0][0]) - length_mm)
+            score += _LENGTH_WEIGHT * abs(float(np.linalg.norm(ends[1][0] - ends[0][0])) - length_mm)
         if best is None or score < best[0]:
             best = (score, ends[0][0], ends[1][0])
     assert best is not None

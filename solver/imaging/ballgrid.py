@@ -161,7 +161,8 @@ def placements(grid: np.ndarray, rows: int, cols: int,
     beyond the plate: blobs continuing the lattice past its edge (specks) are no balls.
     The placements that keep every point on the plate come first.
     """
-    inside_first, overhanging = [], []
+    inside_first: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    overhanging: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for M in _SYMMETRIES:
         g = grid @ M.T
         low = g.min(axis=0)

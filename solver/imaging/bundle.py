@@ -18,7 +18,7 @@ removed by the caller between solves (:func:`ball_residuals`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -40,11 +40,7 @@ class Observations:
     frame: np.ndarray  # (M,) int
     ball: np.ndarray  # (M,) int, row * cols + col
     uv: np.ndarray  # (M, 2)
-    active: np.ndarray = field(default=None)  # (M,) bool: not (yet) an outlier
-
-    def __post_init__(self) -> None:
-        if self.active is None:
-            self.active = np.ones(len(self.frame), bool)
+    active: np.ndarray  # (M,) bool: not (yet) an outlier
 
 
 def rotations(rvecs: np.ndarray) -> np.ndarray:
