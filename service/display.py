@@ -21,6 +21,7 @@ import numpy as np
 from pydicom.dataset import Dataset
 
 from slamtka.service.refusals import RefusalCode
+from slamtka.solver.gates import Why
 
 __all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
            "STATUS_SERIES_NUMBER"]
@@ -43,16 +44,16 @@ def advice(code: str, min_separation_deg: float) -> str:
     """What to do about a refusal (its :class:`RefusalCode`), in words."""
     if code == RefusalCode.NO_PLAN:
         return "add the patient's plan, then re-run the case (slamtka case rerun CASE)"
-    if code == RefusalCode.VIEWS_TOO_CLOSE:
+    if code == Why.VIEWS_TOO_CLOSE:
         return f"take another view at least {min_separation_deg:.0f} deg from the others"
-    if code == RefusalCode.PINS_INDISTINCT:
+    if code == Why.PINS_INDISTINCT:
         return "take another view from a different angle, so that the two pins are told apart"
-    if code in (RefusalCode.TOO_FEW_VIEWS, RefusalCode.TOO_FEW_CONTOURS):
+    if code in (Why.TOO_FEW_VIEWS, RefusalCode.TOO_FEW_CONTOURS):
         return f"take a second view at least {min_separation_deg:.0f} deg from the first"
     if code == RefusalCode.NO_CALIBRATION:
         return "check the C-arm calibration, then re-run the case (slamtka case rerun CASE)"
-    if code in (RefusalCode.BONE_OUTLINE_INSUFFICIENT, RefusalCode.PIN_NOT_SEEN,
-                RefusalCode.GATE_FAILED):
+    if code in (Why.BONE_OUTLINE_INSUFFICIENT, Why.PIN_NOT_SEEN,
+                Why.GATE_FAILED):
         return "take a new view with both pins and the tibia clearly visible"
     return "take a new pair of views; if it persists, measure by hand"
 

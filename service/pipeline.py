@@ -46,6 +46,7 @@ from slamtka.service.results import build_result, validate_result
 from slamtka.service.sender import OutgoingObject
 from slamtka.service.spool import Spool
 from slamtka.solver import kernels
+from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
 from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
 from slamtka.solver.measurement import pin_axis_points
@@ -284,7 +285,7 @@ class Pipeline:
         usable = [i for i in items if i.used]
         if plan is not None and len(usable) < 2:
             refusal = Refusal.of(
-                RefusalCode.TOO_FEW_VIEWS if self.calibration is not None
+                Why.TOO_FEW_VIEWS if self.calibration is not None
                 else RefusalCode.NO_CALIBRATION,
                 f"only {len(usable)} usable view(s); at least two are needed")
         elif plan is not None:

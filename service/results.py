@@ -83,7 +83,7 @@ def build_result(*, case_id: str, run_id: str, case: dict, sources: list[dict],
         doc = result_document(case_id, outcome, plan, views, calibration["id"], method)
         if outcome.status != "measured":
             reasons.append(outcome.reason)
-            refusal = solver_refusal(outcome.reason)
+            refusal = solver_refusal(outcome.why, outcome.reason)
     measured = doc["status"] == "measured"
     verdict = ("not_measured" if not measured
                else "pass" if doc["deviation"]["within_tolerance"] else "fail")

@@ -12,33 +12,51 @@ global search (:func:`solver.slam.solve_joint`).
 
 from __future__ import annotations
 
+from enum import StrEnum
+
 from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagnostics
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
-__all__ = ["angle_uncertainty", "contour_misfit", "input_refusal", "odometry_misfit",
+__all__ = ["Why", "angle_uncertainty", "contour_misfit", "input_refusal", "odometry_misfit",
            "outline_misfit", "pin_divergence", "view_separation"]
 
 
-def input_refusal(d: InputDiagnostics, limits: GateLimits) -> str | None:
-    """Reason why these inputs cannot give a trustworthy measurement, or None."""
+class Why(StrEnum):
+    """Which kind of refusal a solve ends in: the stable code the service publishes beside
+    the sentence (``service.refusals.RefusalCode`` holds every one of these values)."""
+
+    TOO_FEW_VIEWS = "too_few_views"
+    BONE_OUTLINE_INSUFFICIENT = "bone_outline_insufficient"
+    PIN_NOT_SEEN = "pin_not_seen"
+    PINS_INDISTINCT = "pins_indistinct"
+    VIEWS_TOO_CLOSE = "views_too_close"
+    GATE_FAILED = "gate_failed"  # the posed models do not fit what the images show
+    ENCODERS_DISAGREE = "encoders_disagree"
+    NOT_CONVERGED = "not_converged"
+    DEGENERATE = "degenerate"
+
+
+def input_refusal(d: InputDiagnostics, limits: GateLimits) -> tuple[Why, str] | None:
+    """Why these inputs cannot give a trustworthy measurement (kind, sentence), or None."""
     n_views = len(d.view_ids)
     if n_views < 2:
-        return f"only {n_views} view(s); at least two are needed"
+        return Why.TOO_FEW_VIEWS, f"only {n_views} view(s); at least two are needed"
     bone_views = sum(d.point_counts[k, "bone"] >= limits.min_bone_points for k in range(n_views))
     if bone_views < 2:
-        return (f"too few bone contour points: fewer than two views have at least "
-                f"{limits.min_bone_points}")
+        return Why.BONE_OUTLINE_INSUFFICIENT, (f"too few bone contour points: fewer than two views "
+                                               f"have at least {limits.min_bone_points}")
     for label in PIN_LABELS:
         seen = sum(d.point_counts[k, label] >= limits.min_pin_points for k in range(n_views))
         if seen < 2:
             why = "".join(f"; view {view_id}: {label} {notes[label]}"
                           for view_id, notes in zip(d.view_ids, d.notes) if label in notes)
-            return (f"{label} is not seen in two views (needs >= {limits.min_pin_points} contour "
-                    f"points in each; seen in {seen}){why}")
+            return Why.PIN_NOT_SEEN, (f"{label} is not seen in two views (needs >= "
+                                      f"{limits.min_pin_points} contour points in each; seen in "
+                                      f"{seen}){why}")
     if d.view_separation_deg < limits.min_view_separation_deg:
-        return (f"views are too close in angle ({d.view_separation_deg:.1f} deg apart; at least "
-                f"{limits.min_view_separation_deg:.0f} deg needed)")
+        return Why.VIEWS_TOO_CLOSE, (f"views are too close in angle ({d.view_separation_deg:.1f} deg "
+                                     f"apart; at least {limits.min_view_separation_deg:.0f} deg needed)")
     return None
 
 

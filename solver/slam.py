@@ -31,6 +31,7 @@ import numpy as np
 from slamtka.solver import gates
 from slamtka.solver.alignment import align_view_in_image
 from slamtka.solver.diagnostics import diagnose, input_diagnostics
+from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
 from slamtka.solver.measurement import ResectionPlane, fit_resection_plane
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
@@ -72,6 +73,7 @@ class SolveOutcome:
     edge_point_counts: dict[str, int] = field(default_factory=dict)
     initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
+    why: Why | None = None  # the kind of refusal, when not measured (a stable code)
     renamed: list[str] = field(default_factory=list)  # views whose pin names were swapped
     unclear_naming: list[str] = field(default_factory=list)  # views whose pin names were open
 
@@ -99,9 +101,9 @@ def solve_joint(
     start = time.perf_counter()
     problem = JointProblem(plan, views, config)
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-    refusal = gates.input_refusal(input_diagnostics(problem, initial), config.gates)
-    if refusal is not None:
-        return _refused(problem, refusal, None, None, {}, start, poses)
+    not_usable = gates.input_refusal(input_diagnostics(problem, initial), config.gates)
+    if not_usable is not None:
+        return _refused(problem, *not_usable, None, None, {}, start, poses)
     outcome = _solve_restarting(problem, initial, callback, start)
     if outcome.status != "measured" or not outcome.unclear_naming:
         return outcome
@@ -128,7 +130,7 @@ def solve_joint(
     chosen.unclear_naming = unclear
     chosen.iterations = outcome.iterations + other.iterations
     if refusal is not None:
-        chosen.status, chosen.reason = "not_measured", refusal
+        chosen.status, chosen.reason, chosen.why = "not_measured", refusal, Why.PINS_INDISTINCT
     return chosen
 
 
@@ -155,7 +157,7 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
     return outcome
 
 
-def _refused(problem: JointProblem, reason: str, state: State | None,
+def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,
              report: SolveReport | None, rms: dict[str, float], start: float,
              poses: tuple[Pose, ...] = (), went_astray: bool = False) -> SolveOutcome:
     """A "not_measured" outcome; ``poses`` stand in for the state when none was solved;
@@ -167,7 +169,7 @@ def _refused(problem: JointProblem, reason: str, state: State | None,
         list(final[n:]), None, None, rms, report.term_costs if report else {},
         report.iterations if report else 0, time.perf_counter() - start,
         bool(report and report.converged), report.reason if report else "not run",
-        problem.point_counts(), went_astray=went_astray)
+        problem.point_counts(), went_astray=went_astray, why=why)
 
 
 def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
@@ -208,15 +210,16 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     d = diagnose(problem, state, terms)
     rms = d.residual_rms
     if not fine.converged:
-        return _refused(problem, f"the solve did not converge ({fine.reason})", state, report,
-                        rms, start, went_astray=True)
-    misfit = (gates.contour_misfit(d, limits) or gates.pin_divergence(d, limits)
-              or gates.odometry_misfit(d, limits))
-    if misfit is not None:
-        return _refused(problem, misfit, state, report, rms, start, went_astray=True)
+        return _refused(problem, Why.NOT_CONVERGED, f"the solve did not converge ({fine.reason})",
+                        state, report, rms, start, went_astray=True)
+    for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.pin_divergence, Why.GATE_FAILED),
+                      (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
+        misfit = gate(d, limits)
+        if misfit is not None:
+            return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:
-        return _refused(problem, too_close, state, report, rms, start)
+        return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)
 
     final_views, pins = list(state.poses[:n]), list(state.poses[n:])
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
@@ -227,5 +230,5 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
                            True, fine.reason, problem.point_counts())
     degenerate = gates.angle_uncertainty(float(np.max(sigma_deg)), limits)
     if degenerate is not None:
-        outcome.status, outcome.reason = "not_measured", degenerate
+        outcome.status, outcome.reason, outcome.why = "not_measured", degenerate, Why.DEGENERATE
     return outcome

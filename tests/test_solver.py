@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver import gates, optimizer
 from slamtka.solver.diagnostics import SolveDiagnostics, diagnose
+from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
@@ -200,7 +201,7 @@ def test_views_too_close_are_refused(real_plan):
     case = simulate_case(real_plan, SimulationConfig(seed=1, view_angles_deg=(-2.0, 3.0)))
     outcome = solve_joint(real_plan, case.views, case.initial)
     assert outcome.status == "not_measured" and "too close in angle" in outcome.reason
-    assert outcome.plane is None
+    assert outcome.plane is None and outcome.why is Why.VIEWS_TOO_CLOSE
 
 
 def test_pin_missing_from_a_view_is_refused(real_plan):
@@ -210,6 +211,7 @@ def test_pin_missing_from_a_view_is_refused(real_plan):
                                             {**view.contours, "pin2": np.zeros((0, 2))})]
     outcome = solve_joint(real_plan, views, case.initial)
     assert outcome.status == "not_measured" and "pin2 is not seen in two views" in outcome.reason
+    assert outcome.why is Why.PIN_NOT_SEEN
 
 
 def test_too_few_contour_points_are_refused(real_plan):
