@@ -37,7 +37,10 @@ EVENTS = ("service_started", "service_stopped", "connection_refused", "associati
           # storage robustness: the log's own repair, damaged spool files, UID conflicts
           "audit_repaired", "quarantined", "uid_conflict",
           # retention (service.retention)
-          "case_archived", "case_pruned")
+          "case_archived", "case_pruned",
+          # calibrations followed while running; cases refused for a missing plan or
+          # calibration run again when one is added (service.calibrations, service.serve)
+          "calibrations_reloaded", "calibrations_unreadable", "rerun_after_change")
 
 CHAIN_FIELD = "prev"  # SHA-256 (hex) of the previous line's bytes, without its newline
 _GENESIS = "0" * 64  # ``prev`` of the first line of a new log

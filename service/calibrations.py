@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import re
 import threading
 from collections import Counter
@@ -41,6 +42,7 @@ DEVICE_KEYS = {"device_serial_number": ("Device Serial Number", "DeviceSerialNum
                "station_name": ("Station Name", "StationName"),
                "calling_ae_title": ("calling AE title", None)}
 _FIELD_TOLERANCE_MM = 0.5
+log = logging.getLogger("slamtka.service")
 _SAFE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,79}$")
 
 
@@ -196,8 +198,14 @@ class CalibrationSet:
                 "replaced": sorted(i for i in set(after) & set(before) if after[i] != before[i])})
 
     def _tell(self, event: str, fields: dict) -> None:
-        if self.on_change is not None:
+        """Tell ``on_change``; its failure (say, the audit log's disk full) must not keep a
+        frame from its calibration."""
+        if self.on_change is None:
+            return
+        try:
             self.on_change(event, fields)
+        except Exception:
+            log.exception("calibrations: cannot tell %s %s", event, fields)
 
     def select(self, header: Dataset, frame) -> tuple[Calibration | None, str | None]:
         """The calibration for a frame (``frame``: width, height, pixel spacing; ``header``:

@@ -131,6 +131,11 @@ class Service:
         self._incoming: queue.Queue[SpoolEntry | None] = queue.Queue()
         self.retention = Retention(config.retention, config.data_dir, config.output, self.audit.record)
         self._next_retention = 0.0  # at the first turn of the worker, after recovery
+        # Cases whose last run was refused for something an operator can add without new
+        # views (a plan, a calibration: the refusal's may_restart), by case id, with the code;
+        # they run again when the plans or the calibrations change.
+        self._waiting: dict[str, str] = {}
+        self._inputs_seen = self._inputs_state()
         self.receiver = DicomReceiver(config.dicom, self.spool, self.audit, self._incoming.put,
                                       self.retention.space_problem)
         self._worker: threading.Thread | None = None
@@ -313,6 +318,7 @@ class Service:
             for entry in filter(None, batch):  # (no None left: checked above)
                 self._survive(f"assembling {entry.id}", self._assemble, entry, pending)
             self._survive("taking operator requests", self._take_requests, pending, reruns)
+            self._survive("re-running cases that waited", self._retry_waiting, pending, reruns)
             if pending:
                 case = pending.pop(next(iter(pending)))
                 with self.heartbeat.busy(f"case {case.case_id}"):
@@ -328,6 +334,32 @@ class Service:
         for case, _ in self.workflow.take_requests(self.assembler.cases):
             pending[case.case_id] = case
             reruns.add(case.case_id)
+
+    def _inputs_state(self) -> tuple[int, ...]:
+        """When the plans and the calibrations last changed: their folders' change times (a
+        plan or a calibration is added, replaced or removed by a rename into its folder)."""
+        stamps = []
+        for folder in (self.config.plans, self.config.data_dir / "calibrations"):
+            try:
+                stamps.append(folder.stat().st_mtime_ns)
+            except FileNotFoundError:
+                stamps.append(0)
+        return tuple(stamps)
+
+    def _retry_waiting(self, pending: dict[str, Case], reruns: set[str]) -> None:
+        """Run again, once, the cases refused for a missing plan or calibration when the plans
+        or the calibrations changed (``slamtka plan add``, ``slamtka calibration install``)."""
+        state = self._inputs_state()
+        if state == self._inputs_seen:
+            return
+        self._inputs_seen = state
+        for case_id, code in list(self._waiting.items()):
+            del self._waiting[case_id]  # its new run says again whether it still waits
+            case = self.assembler.cases.get(case_id)
+            if case is not None:
+                self.audit.record("rerun_after_change", case_id=case_id, refusal_code=code)
+                pending[case_id] = case
+                reruns.add(case_id)
 
     def _assemble(self, entry: SpoolEntry, pending: dict[str, Case]) -> None:
         """Put a received instance into its case and extract its contours ahead of the run."""
@@ -383,6 +415,11 @@ class Service:
         doc = outcome.doc
         angles = doc["angles"] or {}
         self.workflow.finish_run(case, run_id, doc)
+        refusal = doc["refusal"] or {}
+        if refusal.get("may_restart"):
+            self._waiting[case.case_id] = refusal["code"]
+        else:
+            self._waiting.pop(case.case_id, None)
         self._last_result = self.audit.record(
             "processed", case_id=case.case_id, run_id=run_id, pin_set=measurement["pin_set"],
             number=measurement["number"], status=doc["status"],

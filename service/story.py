@@ -47,6 +47,9 @@ _STEPS: dict[str, tuple[int, Callable[[dict], str]]] = {
     "failed": (logging.ERROR, lambda e: f"{_who(e)}: failed: {e.get('error')}"),
     "status_sent": (logging.INFO, lambda e: f"{_who(e)}: display told: {e.get('message')}"),
     "sent": (logging.INFO, lambda e: f"{_who(e)}: {e.get('kind')} sent to {e.get('destination')}"),
+    "rerun_after_change": (logging.INFO, lambda e: f"{_who(e)}: run again now that the plans or "
+                                                   f"calibrations changed (it was refused: "
+                                                   f"{e.get('refusal_code')})"),
     "calibrations_reloaded": (logging.INFO, lambda e: f"calibrations changed: added {e.get('added')}, "
                                                       f"replaced {e.get('replaced')}, removed {e.get('removed')}"),
     "calibrations_unreadable": (logging.ERROR, lambda e: f"calibrations folder unreadable, still using "

@@ -284,6 +284,10 @@ def test_a_running_service_picks_up_an_installed_calibration_without_restart(tmp
     assert live.select(ds, frame)[0] is None
     assert told[-1] == ("calibrations_reloaded", {"added": [], "removed": ["or7"], "replaced": []})
     assert [c.calibration_id for c in live.installed] == [or3.calibration_id]
+    # Telling the change may fail (the audit log's disk full): the frame still gets its calibration.
+    live.on_change = lambda event, fields: 1 / 0
+    CalibrationStore(folder).install(made / "or7.json", "device_serial_number")
+    assert live.select(ds, frame)[0].calibration_id == "or7"
 
 
 def test_install_refuses_an_unsafe_id_and_a_second_calibration_of_the_same_detector(tmp_path):

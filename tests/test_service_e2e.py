@@ -9,6 +9,7 @@ back headless with ``slamtka replay``.
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 import shutil
@@ -24,7 +25,8 @@ from slamtka.service.audit import read_audit
 from slamtka.service.cases import case_id_of, run_id_of
 from slamtka.service.cli import main
 from slamtka.service.display import STATUS_SERIES
-from slamtka.service.frames import encode_frame
+from slamtka.service.frames import SIMULATED_SERIAL, encode_frame
+from slamtka.service.plans import PlanStore
 from slamtka.service.results import validate_result
 from slamtka.sim.theatre import CARM_AE, SERVICE_AE, Theatre
 
@@ -179,6 +181,19 @@ def test_further_views_duplicates_refusals_and_crash_recovery(theatre):
     th.wait_for_result(stranger, 60.0)
     refused = json.loads(_wait_file(_folder_of(th, stranger, "NO-PLAN") / "result.json").read_text())
     assert refused["status"] == "not_measured" and "no plan for patient 'NO-PLAN'" in refused["reason"]
+    assert refused["refusal"]["code"] == "no_plan" and refused["refusal"]["may_restart"]
+    # Its plan added while the service runs (`slamtka plan add`): the case runs again by
+    # itself, without new views, and is measured.
+    late = copy.copy(th.plan)
+    late.patient_id = "NO-PLAN"
+    PlanStore(th.root / "plans").add(late, {"landmarks": "given", "imported": "added late"})
+    remeasured = _wait_for(lambda: [json.loads((run / "result.json").read_text())
+                                    for run in _folder_of(th, stranger, "NO-PLAN").parent.iterdir()
+                                    if (run / "result.json").is_file()
+                                    and json.loads((run / "result.json").read_text())["status"] == "measured"])
+    assert abs(remeasured[0]["angles"]["ctr_deg"] - stranger.truth_ctr_deg) < 1.0
+    assert any(e["event"] == "rerun_after_change" and e["refusal_code"] == "no_plan"
+               for e in read_audit(audit))
 
     # Contours drawn by hand (here: the true outlines) are used instead of extraction.
     drawn = th.replay_case(case)
@@ -203,6 +218,16 @@ def test_further_views_duplicates_refusals_and_crash_recovery(theatre):
     assert left["sources"][0]["problem"] is None  # the one view left could not be solved alone
     assert "but calibration" in left["sources"][1]["problem"]
 
+    # A calibration installed for the C-arm while the service runs is used from the next frame.
+    assert main(["calibration", "install", str(th.root / "carm-calibration.json"), "--config",
+                 str(th.root / "slamtka.toml"), "--device-serial-number", SIMULATED_SERIAL]) == 0
+    installed = th.replay_case(case)
+    th.acquire(installed, keep_times=True)
+    th.wait_for_result(installed, 60.0)
+    used = json.loads(_wait_file(th.result_folder(installed) / "result.json").read_text())
+    reloaded = [e for e in read_audit(audit) if e["event"] == "calibrations_reloaded"]
+    assert used["status"] == "measured" and reloaded and reloaded[0]["added"] == [used["calibration"]["id"]]
+
     # A crash after the first view was acknowledged loses nothing: after the restart the
     # second view completes the case.
     crash = th.replay_case(case)
@@ -217,6 +242,15 @@ def test_further_views_duplicates_refusals_and_crash_recovery(theatre):
     # A clean stop is audited.
     assert th.stop_service() == 0
     assert list(read_audit(audit))[-1]["event"] == "service_stopped"
+
+
+def _wait_for(found, timeout: float = 90.0):
+    """What ``found()`` returns once it is not empty (polling), or fail at the timeout."""
+    deadline = time.monotonic() + timeout
+    while not (result := found()):
+        assert time.monotonic() < deadline, "not found in time"
+        time.sleep(0.2)
+    return result
 
 
 def _folder_of(th: Theatre, case, patient_id: str):
