@@ -166,14 +166,14 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS})
              for v in inputs["views"]]
     init = inputs["initial"]
-    initial = InitialGuess(tuple(Pose.from_json(T) for T in init["T_cam_tibia"]),
-                           tuple(Pose.from_json(T) for T in init["T_tibia_pin"]),
+    pin1, pin2 = (Pose.from_json(T) for T in init["T_tibia_pin"])
+    initial = InitialGuess(tuple(Pose.from_json(T) for T in init["T_cam_tibia"]), (pin1, pin2),
                            None if init["odometry_sigma"] is None else tuple(init["odometry_sigma"]))
     outcome = solve_joint(plan, views, initial, SolverConfig())
-    if outcome.status != "measured":
+    if outcome.status != "measured" or outcome.angles_deg is None:
         return {"status": outcome.status, "reason": outcome.reason}, notes
-    return {"status": "measured", "ctr_deg": float(np.degrees(outcome.plane.ctr)),
-            "str_deg": float(np.degrees(outcome.plane.str_))}, notes
+    ctr_deg, str_deg = outcome.angles_deg
+    return {"status": "measured", "ctr_deg": ctr_deg, "str_deg": str_deg}, notes
 
 
 def _summary(rec: Recording) -> str:

@@ -72,7 +72,8 @@ def align_view_in_image(
     shift = shift * downscale
     # In-plane rotation about the optical axis, then the rotation that moves the image by
     # ``shift``: rotating camera-frame points about y moves them along u, about x along v.
-    R = (rotation_about([1.0, 0.0, 0.0], -np.arctan2(shift[1], camera.fy))
-         @ rotation_about([0.0, 1.0, 0.0], np.arctan2(shift[0], camera.fx))
-         @ rotation_about([0.0, 0.0, 1.0], np.radians(angle)))
+    x, y, z = np.eye(3)
+    R = (rotation_about(x, -np.arctan2(shift[1], camera.fy))
+         @ rotation_about(y, np.arctan2(shift[0], camera.fx))
+         @ rotation_about(z, np.radians(angle)))
     return Pose(R, np.zeros(3)) @ T_cam_model
