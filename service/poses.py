@@ -35,7 +35,7 @@ from slamtka.service.clock import review_pairing
 from slamtka.service.frames import Frame
 from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles
 from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
-from slamtka.solver.geometry import Pose, look_at
+from slamtka.solver.geometry import Pose, largest_angle_deg, look_at
 from slamtka.solver.plan import Plan
 
 __all__ = ["beam_direction_anat", "positioner_T_anat_cam", "planned_pins",
@@ -64,11 +64,7 @@ def positioner_T_anat_cam(primary_deg: float, secondary_deg: float, sod_mm: floa
 
 def view_separation_deg(beams: list[np.ndarray]) -> float:
     """Largest angle between any two beam directions, degrees."""
-    b = np.asarray(beams, float)
-    if len(b) < 2:
-        return 0.0
-    cos = np.clip(b @ b.T, -1.0, 1.0)
-    return float(np.degrees(np.max(np.arccos(cos))))
+    return largest_angle_deg(np.asarray(beams, float).reshape(-1, 3))
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamtka.solver.geometry import Pose
+from slamtka.solver.geometry import Pose, largest_angle_deg
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -73,9 +73,7 @@ class SolveDiagnostics:
 
 def view_separation_deg(views: list[Pose]) -> float:
     """Largest angle between the viewing directions of any two views, degrees."""
-    axes = np.array([T.R[2] for T in views])  # camera +z in the tibia frame
-    cos = np.clip(axes @ axes.T, -1.0, 1.0)
-    return float(np.degrees(np.max(np.arccos(cos))))
+    return largest_angle_deg(np.array([T.R[2] for T in views]))  # camera +z, tibia frame
 
 
 def input_diagnostics(problem: JointProblem, initial: InitialGuess) -> InputDiagnostics:

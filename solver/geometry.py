@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Pose", "cross", "hat", "row_norms", "so3_exp", "so3_log", "so3_right_jacobian_inverse",
+__all__ = ["Pose", "cross", "hat", "largest_angle_deg", "row_norms", "so3_exp", "so3_log", "so3_right_jacobian_inverse",
            "rotation_about", "look_at"]
 
 _I3 = np.eye(3)
@@ -171,6 +171,14 @@ class Pose:
     @staticmethod
     def from_json(rows: list[list[float]]) -> Pose:
         return Pose.from_matrix(np.asarray(rows, dtype=float))
+
+
+def largest_angle_deg(directions: np.ndarray) -> float:
+    """Largest angle between any two unit vectors (rows), degrees; 0 for fewer than two."""
+    if len(directions) < 2:
+        return 0.0
+    cos = np.clip(directions @ directions.T, -1.0, 1.0)
+    return float(np.degrees(np.max(np.arccos(cos))))
 
 
 def box_corners(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
