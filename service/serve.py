@@ -424,7 +424,7 @@ class Service:
             "processed", case_id=case.case_id, run_id=run_id, pin_set=measurement["pin_set"],
             number=measurement["number"], status=doc["status"],
             verdict=doc["verdict"], reason=doc["reason"],
-            refusal_code=(doc["refusal"] or {}).get("code"), ctr_deg=angles.get("ctr_deg"),
+            refusal_code=refusal.get("code"), ctr_deg=angles.get("ctr_deg"),
             str_deg=angles.get("str_deg"), seconds=doc["timings"]["total_s"],
             folder=str(outcome.folder), outputs_sha256=file_digests(outcome.folder))
 

@@ -89,7 +89,7 @@ def settle_naming(first: Solved, second: Solved, views: list[str]) -> tuple[Solv
     if first.status != "measured":
         return second, None
     cost_first, cost_second = sum(first.term_costs.values()), sum(second.term_costs.values())
-    better, worse = (first, second) if cost_first <= cost_second else (second, first)
+    better = first if cost_first <= cost_second else second
     if abs(cost_first - cost_second) >= NAMING_MIN_COST_GAP:
         return better, None
     a, b = first.angles_deg, second.angles_deg

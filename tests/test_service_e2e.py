@@ -50,10 +50,7 @@ def _dciodvfy_errors(path) -> list[str]:
 
 
 def _wait_file(path, timeout: float = 30.0):
-    deadline = time.monotonic() + timeout
-    while not path.is_file() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    return path
+    return _wait_for(lambda: path if path.is_file() else None, timeout)
 
 
 @pytest.fixture(scope="module")

@@ -121,16 +121,8 @@ def test_a_solver_refusal_carries_the_kind_the_solver_named():
 
 
 def test_the_schema_publishes_every_refusal_code():
-    published = result_schema()["properties"]["refusal"]
-    codes = next(v for v in _walk(published) if isinstance(v, dict) and "enum" in v)["enum"]
+    codes = result_schema()["properties"]["refusal"]["properties"]["code"]["enum"]
     assert sorted(codes) == sorted(CODES)
-
-
-def _walk(node):
-    yield node
-    children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
-    for child in children:
-        yield from _walk(child)
 
 
 @pytest.mark.parametrize("tamper,where", [

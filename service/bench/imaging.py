@@ -164,14 +164,13 @@ def _noise_floor(report: dict, twin: dict) -> tuple[float, float]:
     calibrated without refining the plate: what the camera model leaves of detection noise.
     The floor is its RMS scaled by sqrt((2n - p) / (2n - p_twin)) for the plate's extra
     parameters, which take up part of the noise in the real run's fit."""
-    def over_common(doc: dict, other: dict) -> tuple[float, int]:
+    def over_common(doc: dict, other: dict) -> float:
         theirs = {e["image"] for e in other["images"] if e["used"]}
         mine = [e for e in doc["images"] if e["used"] and e["image"] in theirs]
         balls = sum(e["balls_used"] for e in mine)
-        return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / balls)), balls
+        return float(np.sqrt(sum(e["balls_used"] * e["rms_px"] ** 2 for e in mine) / balls))
 
-    rms, _ = over_common(report, twin)
-    floor, _ = over_common(twin, report)
+    rms, floor = over_common(report, twin), over_common(twin, report)
     dof_real = 2 * report["observations"] - report["parameters"]
     dof_twin = 2 * twin["observations"] - twin["parameters"]
     return rms, floor * float(np.sqrt(dof_real / dof_twin))
