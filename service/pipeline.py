@@ -48,7 +48,12 @@ from slamtka.service.spool import Spool
 from slamtka.solver import kernels
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
-from slamtka.solver.imaging.contours import ContourError, extract_contours, load_manual_contours
+from slamtka.solver.imaging.contours import (
+    ContourError,
+    ExtractedContours,
+    extract_contours,
+    load_manual_contours,
+)
 from slamtka.solver.measurement import pin_axis_points
 from slamtka.solver.observations import LABELS, ViewObservation
 from slamtka.solver.plan import Plan
@@ -79,7 +84,7 @@ class _ViewInput:
     view_id: str
     frame: Frame
     header: Dataset  # the instance without pixel data (SR evidence, SC reference)
-    contours_raw: dict[str, np.ndarray] | None = None
+    contours: ExtractedContours | None = None  # raw pixels, as extracted or drawn
     contour_source: str | None = None
     left_out: str | None = None  # why the run could not use the view (its source says so)
 
@@ -120,7 +125,7 @@ class Pipeline:
         self.calibration = None  # of the run (or arriving view) being worked on
         self.output_root = Path(output_root)
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
-        self._extracted: OrderedDict[str, tuple[dict | None, str]] = OrderedDict()
+        self._extracted: OrderedDict[str, tuple[ExtractedContours | None, str]] = OrderedDict()
         self._pins: tuple[Plan, tuple[Pose, Pose]] | None = None
 
     def warm_up(self) -> None:
@@ -148,9 +153,9 @@ class Pipeline:
         return (self.run_folder(case, views, run_id) / "result.json").is_file()
 
     # -- stages ---------------------------------------------------------------------------
-    def _manual_contours(self) -> dict[str, dict[str, np.ndarray]]:
+    def _manual_contours(self) -> dict[str, ExtractedContours]:
         """Hand-drawn contours (raw pixels) by SOP Instance UID (the documents' view_id)."""
-        found: dict[str, dict[str, np.ndarray]] = {}
+        found: dict[str, ExtractedContours] = {}
         if self.manual_contours_dir is None or not self.manual_contours_dir.is_dir():
             return found
         for path in sorted(self.manual_contours_dir.glob("*.json")):
@@ -160,20 +165,20 @@ class Pipeline:
                 log.error("ignoring manual contours: %s", exc)
                 continue
             for uid, contours in views.items():
-                found[uid] = {label: (self.calibration.distort_points(points)
-                                      if coordinates == "undistorted" else points)
-                              for label, points in contours.as_dict().items()}
+                found[uid] = contours if coordinates != "undistorted" else ExtractedContours(
+                    **{label: self.calibration.distort_points(points)
+                       for label, points in contours.as_dict().items()})
         return found
 
     def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
-                 pins: tuple[Pose, Pose]) -> tuple[dict[str, np.ndarray] | None, str]:
+                 pins: tuple[Pose, Pose]) -> tuple[ExtractedContours | None, str]:
         """Extracted contours of one view (raw pixels), or None and the reason; cached."""
         uid = view.sop_instance_uid
         if uid not in self._extracted:
             try:
                 found = extract_contours(frame.pixels,
                                          expected_pins=self._expected_pins(plan, T_cam_tibia, pins))
-                self._extracted[uid] = (found.as_dict(), "extracted")
+                self._extracted[uid] = (found, "extracted")
             except ContourError as exc:
                 self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")
             while len(self._extracted) > _PREPARED_VIEWS:
@@ -213,10 +218,10 @@ class Pipeline:
                 None, "the frame does not match the C-arm calibration"))
         if raw is None:
             return None, source
-        if any(len(raw.get(label, ())) == 0 for label in ("pin1", "pin2")):
+        if any(len(points) == 0 for points in (raw.pin1, raw.pin2)):
             return None, f"{NO_CONTOURS} (fewer than two pins)"
         return {label: self.calibration.undistort_points(points)
-                for label, points in raw.items()}, source
+                for label, points in raw.as_dict().items()}, source
 
     def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
         """The planned pins of ``plan``, kept for the plan last asked about (the object itself:
@@ -297,7 +302,7 @@ class Pipeline:
 
         recorder.stage("results")
         refused = self._refused_sources(case, len(items), reasons)
-        used = {i.view_id for i in items if i.used and i.contours_raw is not None}
+        used = {i.view_id for i in items if i.used and i.contours is not None}
         uids = {key: result_uid(case.case_id, run_id, key)
                 for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
         timings["total_s"] = time.perf_counter() - started
@@ -396,20 +401,21 @@ class Pipeline:
         for item, T in zip(usable, start.T_cam_tibia):
             uid = item.view.sop_instance_uid
             if uid in manual:
-                item.contours_raw, item.contour_source = manual[uid], "manual"
+                item.contours, item.contour_source = manual[uid], "manual"
             else:
-                item.contours_raw, item.contour_source = self._extract(plan, item.view,
-                                                                       item.frame, T, pins)
-            if item.contours_raw is None:
+                item.contours, item.contour_source = self._extract(plan, item.view,
+                                                                   item.frame, T, pins)
+            if item.contours is None:
                 item.left_out = item.contour_source
                 reasons.append(f"{item.view_id}: {item.contour_source}")
                 item.contour_source = None
             else:
-                recorder.contours(item.view_id, item.contours_raw, item.contour_source)
+                recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
         kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
-        observations = [ViewObservation(i.view_id, self.calibration.camera, {
-            label: self.calibration.undistort_points(i.contours_raw[label]) for label in LABELS})
-            for i, _ in kept]
+        cal = self.calibration
+        observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,
+                                               cal.distort_points)
+                        for i, _ in kept if i.contours is not None]
         initial = InitialGuess(tuple(T for _, T in kept), pins, start.odometry_sigma)
         recorder.solver_inputs(self._solver_inputs(plan, observations, initial))
         lap("contours")
@@ -436,7 +442,9 @@ class Pipeline:
 
         return {"camera": self.calibration.camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
-                                                    for label in LABELS}} for o in observations],
+                                                    for label in LABELS}, "notes": o.notes,
+                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
+                          for o in observations],
                 "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],
                             "T_tibia_pin": [T.to_json() for T in initial.T_tibia_pin],
                             "odometry_sigma": initial.odometry_sigma},
@@ -497,7 +505,7 @@ class Pipeline:
         built = [(sr, "sr.dcm", "sr", _SR_CLASS)]
         text = self._summary_lines(doc, min_separation_deg)
         for n, item in enumerate(items, start=1):
-            overlay = ScOverlay(item.contours_raw or {}, text=text,
+            overlay = ScOverlay(item.contours.as_dict() if item.contours else {}, text=text,
                                 within_tolerance=(doc["deviation"] or {}).get("within_tolerance"))
             T = posed.get(item.view_id)
             orientation = None

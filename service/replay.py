@@ -26,7 +26,7 @@ from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.measurement import fit_resection_plane
-from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.observations import LABELS, ViewObservation, VisibleRegion
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
 from slamtka.solver.sdf import mesh_digest
@@ -163,7 +163,9 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
         notes.append("this software's solver configuration differs from the recorded one")
     camera = Camera.from_json(inputs["camera"])
     views = [ViewObservation(v["view_id"], camera,
-                             {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS})
+                             {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
+                             dict(v.get("notes", {})),
+                             VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None)
              for v in inputs["views"]]
     init = inputs["initial"]
     pin1, pin2 = (Pose.from_json(T) for T in init["T_tibia_pin"])

@@ -34,8 +34,9 @@ class OutlineFit:
 
     view_id: str
     label: str
-    median_px: float  # both sides: outline to contour and contour to outline
+    median_px: float  # both sides: the visible outline to contour and contour to outline
     p90_px: float | None  # of the outline alone; pins with an outline only
+    visible_share: float  # of the outline, where the frame could show its edge
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,8 @@ def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
         label = problem.label(term.body)
         median_px = float(np.median(np.concatenate([outline, contour])))
         p90_px = float(np.percentile(outline, 90)) if term.body is not None and len(outline) else None
-        fits.append(OutlineFit(problem.views[term.view].view_id, label, median_px, p90_px))
+        fits.append(OutlineFit(problem.views[term.view].view_id, label, median_px, p90_px,
+                               term.visible_share()))
     return tuple(fits)
 
 

@@ -18,8 +18,8 @@ from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagno
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
-__all__ = ["Why", "angle_uncertainty", "contour_misfit", "input_refusal", "odometry_misfit",
-           "outline_misfit", "pin_divergence", "view_separation"]
+__all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
+           "odometry_misfit", "outline_misfit", "pin_divergence", "view_separation"]
 
 
 class Why(StrEnum):
@@ -85,6 +85,19 @@ def contour_misfit(d: SolveDiagnostics, limits: GateLimits) -> str | None:
                     f"> {limits.max_pin_graze_offset_mm} mm): "
                     f"the views disagree about where it is")
     return outline_misfit(d.outlines, limits.max_silhouette_median_px, limits)
+
+
+def hidden_outline(d: SolveDiagnostics, limits: GateLimits) -> str | None:
+    """Why too little of the bone's outline can be seen in some view to trust its fit, or
+    None: where metal, collimator blades, text or the field's edge hide most of it, the
+    fit of the rest cannot tell a wrong pose from a right one."""
+    for fit in d.outlines:
+        if fit.label == "bone" and fit.visible_share < limits.min_visible_outline_share:
+            return (f"view {fit.view_id}: too little of the tibia outline is visible "
+                    f"({100 * fit.visible_share:.0f}% of it < "
+                    f"{100 * limits.min_visible_outline_share:.0f}%; metal, collimator blades "
+                    f"or the field's edge hide the rest)")
+    return None
 
 
 def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:

@@ -9,6 +9,8 @@ queried with bilinear interpolation and its exact gradient.
 
 from __future__ import annotations
 
+import base64
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -17,7 +19,7 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import row_norms
 
-__all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation"]
+__all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation", "VisibleRegion"]
 
 LABELS = ("bone", "pin1", "pin2")
 PIN_LABELS = ("pin1", "pin2")
@@ -106,6 +108,59 @@ class DistanceMap:
         return value, grad
 
 
+@dataclass(frozen=True)
+class VisibleRegion:
+    """Where in a view the bone's edge could have been seen had it been there: inside the
+    exposed field, clear of metal and collimator blades, burned-in text and the pins'
+    shadows. Outside it a model's outline has no contour to lie on, so it is neither
+    charged for lying off the contour nor counted by the gates (docs/solver.md, "What the
+    frame hides").
+
+    ``cells[i, j]`` covers the undistorted pixels ``cell_px * (j, i)`` to
+    ``cell_px * (j + 1, i + 1)``; beyond the grid nothing is visible."""
+
+    cells: np.ndarray  # (h, w) bool
+    cell_px: int
+
+    def __post_init__(self) -> None:
+        if self.cells.ndim != 2 or self.cells.dtype != bool or self.cell_px < 1:
+            raise ValueError("a visible region is a 2-D boolean grid of cells of at least 1 px")
+
+    @staticmethod
+    def from_raw(raw_cells: np.ndarray, cell_px: int, size: tuple[int, int],
+                 distort: Callable[[np.ndarray], np.ndarray]) -> VisibleRegion:
+        """The region over undistorted pixels of an image of ``size`` (width, height), from
+        its cells over raw (distorted) pixels: each undistorted cell takes the raw cell
+        its centre is imaged at (``distort``: undistorted to raw pixels)."""
+        h, w = -(-size[1] // cell_px), -(-size[0] // cell_px)
+        j, i = np.meshgrid(np.arange(w), np.arange(h))
+        centres = cell_px * (np.column_stack([j.ravel(), i.ravel()]) + 0.5)
+        region = VisibleRegion(np.asarray(raw_cells, bool), cell_px)
+        return VisibleRegion(region.contains(distort(centres)).reshape(h, w), cell_px)
+
+    def to_json(self) -> dict:
+        """The grid as JSON: its shape, and its cells as packed bits in base64."""
+        bits = base64.b64encode(np.packbits(self.cells.ravel()).tobytes()).decode("ascii")
+        return {"cell_px": self.cell_px, "shape": list(self.cells.shape), "cells": bits}
+
+    @staticmethod
+    def from_json(doc: dict) -> VisibleRegion:
+        h, w = (int(n) for n in doc["shape"])
+        bits = np.frombuffer(base64.b64decode(doc["cells"]), np.uint8)
+        if h < 1 or w < 1 or len(bits) * 8 < h * w:
+            raise ValueError(f"a visible region of shape {h} x {w} needs {h * w} bits")
+        return VisibleRegion(np.unpackbits(bits)[:h * w].reshape(h, w).astype(bool), int(doc["cell_px"]))
+
+    def contains(self, uv: np.ndarray) -> np.ndarray:
+        """Which pixel positions (N, 2) lie in the region (N,)."""
+        cell = np.floor(np.asarray(uv, float) / self.cell_px).astype(np.int64)
+        h, w = self.cells.shape
+        inside = (cell[:, 0] >= 0) & (cell[:, 1] >= 0) & (cell[:, 0] < w) & (cell[:, 1] < h)
+        found = np.zeros(len(cell), bool)
+        found[inside] = self.cells[cell[inside, 1], cell[inside, 0]]
+        return found
+
+
 @dataclass
 class ViewObservation:
     """One X-ray view: calibrated camera, labelled contour pixels, identity."""
@@ -116,6 +171,8 @@ class ViewObservation:
     # Why a label has no contour in this view, when the extraction could say ("hidden by
     # metal"): named in the refusal.
     notes: dict[str, str] = field(default_factory=dict)
+    # Where the bone's edge could be seen (None: wherever the camera's field reaches).
+    bone_visible: VisibleRegion | None = None
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -130,6 +187,11 @@ class ViewObservation:
             if not np.all(np.isfinite(pts)):
                 raise ValueError(f"view {self.view_id}: {label} contour has non-finite points")
             self.contours[label] = pts
+
+    def with_contours(self, **contours: np.ndarray) -> ViewObservation:
+        """This view with some labels' contours replaced (and their distance maps afresh)."""
+        return ViewObservation(self.view_id, self.camera, {**self.contours, **contours},
+                               self.notes, self.bone_visible)
 
     def distance_map(self, label: str) -> DistanceMap:
         if label not in self._distance_maps:

@@ -54,9 +54,7 @@ Solved = TypeVar("Solved", bound=_Solved)
 
 def swap_pins(view: ViewObservation) -> ViewObservation:
     """The view with its two pins' names swapped."""
-    return ViewObservation(view.view_id, view.camera,
-                           {**view.contours, "pin1": view.contours["pin2"], "pin2": view.contours["pin1"]},
-                           view.notes)
+    return view.with_contours(pin1=view.contours["pin2"], pin2=view.contours["pin1"])
 
 
 def naming_score(views: list[ViewObservation], T_cam_tibia: list[Pose] | tuple[Pose, ...],

@@ -95,13 +95,14 @@ class JointProblem:
             if len(outline) == 0:
                 continue
             uv = view.camera.project(T.apply(outline))
-            if float(np.median(view.distance_map("bone").query(uv)[0])) > c.gates.max_coarse_bone_median_px:
+            seen = uv if view.bone_visible is None else uv[view.bone_visible.contains(uv)]
+            if len(seen) == 0 or float(np.median(view.distance_map("bone").query(seen)[0])) > \
+                    c.gates.max_coarse_bone_median_px:
                 continue
             near = cKDTree(uv).query(pixels)[0] <= c.sampling.foreign_edge_px
             if near.all():
                 continue
-            views[k] = ViewObservation(view.view_id, view.camera, {**view.contours, "bone": pixels[near]},
-                                       view.notes)
+            views[k] = view.with_contours(bone=pixels[near])
         if all(a is b for a, b in zip(views, self.views)):
             return self
         return JointProblem(self.plan, views, c, self.naming_fixed)
@@ -220,7 +221,8 @@ class JointProblem:
                     (self.coarse_pixels if thinned else self.pixels)[k, label],
                     NoiseModel(c.noise.sigma_px, loss, weight),
                     c.sampling.silhouette_spacing_px * thinning,
-                    outer_only=(label == "bone"), freeze_outline=freeze_outline))
+                    outer_only=(label == "bone"), freeze_outline=freeze_outline,
+                    visible=view.bone_visible if label == "bone" else None))
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:

@@ -212,6 +212,9 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     if not fine.converged:
         return _refused(problem, Why.NOT_CONVERGED, f"the solve did not converge ({fine.reason})",
                         state, report, rms, start, went_astray=True)
+    hidden = gates.hidden_outline(d, limits)
+    if hidden is not None:
+        return _refused(problem, Why.BONE_OUTLINE_INSUFFICIENT, hidden, state, report, rms, start)
     for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.pin_divergence, Why.GATE_FAILED),
                       (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
         misfit = gate(d, limits)

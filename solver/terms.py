@@ -26,7 +26,7 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
 from slamtka.solver.kernels import nearest_points
-from slamtka.solver.observations import DistanceMap
+from slamtka.solver.observations import DistanceMap, VisibleRegion
 from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
@@ -155,9 +155,11 @@ class BackProjectionTerm:
 @dataclass(frozen=True)
 class Correspondence:
     """What a silhouette term pairs at one linearisation point: its traced outline (model
-    frame) and, per observed contour pixel, the outline point nearest it."""
+    frame), the outline points charged for lying off the contour (those where the frame
+    could show an edge), and, per observed contour pixel, the outline point nearest it."""
 
     outline: np.ndarray  # (S, 3)
+    charged: np.ndarray  # (C,) indices into ``outline``
     nearest: np.ndarray | None  # (M,) indices into ``outline``; None for an empty outline
 
 
@@ -178,6 +180,10 @@ class ModelProjectionTerm:
     contour pixel its distance to the nearest projected silhouette point. A one-sided cost
     could be lowered by sliding the model out of the field of view. A held pairing can only
     overstate a trial's cost, so a step accepted on it is a true decrease.
+
+    Where the frame could not show the edge (``visible``: metal, collimator blades, text,
+    the pins' shadows) a silhouette point is not charged: its contour is hidden, not
+    missing. It still pairs with observed pixels, which all lie where edges can be seen.
     """
 
     name: str
@@ -191,6 +197,7 @@ class ModelProjectionTerm:
     spacing_px: float = 3.0
     outer_only: bool = True
     freeze_outline: bool = False
+    visible: VisibleRegion | None = None
     correspondence: Correspondence | None = field(default=None, init=False, repr=False)
     # The footprint that tells the outer outline from interior folds, and the pose it was
     # rasterised at: a cache of :meth:`correspond`, redone once the model has moved enough.
@@ -217,25 +224,37 @@ class ModelProjectionTerm:
         T_cam_body = self._T_cam_body(state)
         held = self.correspondence
         S = held.outline if held is not None and self.freeze_outline else self._trace(T_cam_body)
-        nearest = None
+        nearest, charged = None, np.arange(len(S))
         if len(S):
-            # Binned at twice the outline's spacing: a few points per occupied cell.
             uv = self.camera.project(T_cam_body.apply(S))
+            # Binned at twice the outline's spacing: a few points per occupied cell.
             nearest = nearest_points(uv, self.observed, 2.0 * self.spacing_px)
-        self.correspondence = Correspondence(S, nearest)
+            if self.visible is not None:
+                charged = np.flatnonzero(self.visible.contains(uv))
+        self.correspondence = Correspondence(S, charged, nearest)
 
     def distances_px(self, state: State) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel distances of the outline traced at ``state`` to the observed contour, and of
-        each observed contour pixel to the outline (the two sides of the residual)."""
+        """Pixel distances of the visible outline traced at ``state`` to the observed
+        contour, and of each observed contour pixel to the outline (the two sides of the
+        residual)."""
         self.correspond(state)
         r = np.abs(self.linearize(state, jacobians=False).residuals[:, 0])
         return r[: len(r) - len(self.observed)], r[len(r) - len(self.observed):]
+
+    def visible_share(self) -> float:
+        """The share of the outline of the last correspondence step where the frame could
+        show its edge (1 for an empty outline)."""
+        held = self.correspondence
+        if held is None or len(held.outline) == 0:
+            return 1.0
+        return len(held.charged) / len(held.outline)
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         if self.correspondence is None:
             raise RuntimeError("a silhouette term is linearised after its correspondence step")
         T_cam_body = self._T_cam_body(state)
         S, nearest = self.correspondence.outline, self.correspondence.nearest
+        charged = self.correspondence.charged
         if nearest is None:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), float(self.camera.width))
@@ -245,7 +264,7 @@ class ModelProjectionTerm:
             uv, J_proj = self.camera.project_with_jacobian(p_cam)
         else:
             uv = self.camera.project(p_cam)
-        dist, grad = self.distance_map.query(uv)
+        dist, grad = self.distance_map.query(uv[charged])
         offset = uv[nearest] - self.observed
         nearest_dist = row_norms(offset)
         r = np.concatenate([dist, nearest_dist])[:, None]
@@ -256,7 +275,7 @@ class ModelProjectionTerm:
         # own points and for the silhouette point nearest each observed pixel; the pixel
         # gradient is carried to the camera frame first, so the poses' blocks are formed
         # for one row per residual instead of two.
-        rows = np.concatenate([np.arange(len(S)), nearest])
+        rows = np.concatenate([charged, nearest])
         J_pix = np.concatenate([grad, direction])  # (N, 2)
         J_cam = np.einsum("nk,nkj->nj", J_pix, J_proj[rows])  # (N, 3)
         J_view, J_body, _ = pose_increments(state, self.view, self.body, S[rows], J_cam)

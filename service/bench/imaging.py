@@ -56,7 +56,6 @@ from slamtka.solver.imaging.calibration import CalibrationImage, CalibrationOpti
 from slamtka.solver.imaging.contours import ContourConfig, ExtractedContours, extract_contours
 from slamtka.solver.imaging.distortion import Distortion
 from slamtka.solver.imaging.plate import PhantomSpec
-from slamtka.solver.observations import ViewObservation
 from slamtka.solver.slam import SolverConfig, solve_joint
 
 __all__ = ["contour_scores", "residual_distortion_px", "add_imaging_bench_parser", "run_imaging"]
@@ -264,8 +263,7 @@ def run_imaging(args: argparse.Namespace) -> int:
             raw.append((radiograph, found))
         for level in args.levels:
             case = simulate_case(plan, SimulationConfig.at_level(level, seed))
-            views = [ViewObservation(v.view_id, camera, {label: r.distortion.undistort(points) if len(points)
-                                                         else points for label, points in f.as_dict().items()})
+            views = [f.observation(v.view_id, camera, r.distortion.undistort, r.distortion.distort)
                      for v, (r, f) in zip(case.views, raw)]
             outcome = solve_joint(plan, views, case.initial, SolverConfig())
             if outcome.status == "measured":

@@ -44,7 +44,6 @@ from slamtka.sim.operating_room import (
 from slamtka.sim.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
 from slamtka.sim.xray import XRayParams, XRayScene
 from slamtka.solver.imaging.contours import ContourError, ExtractedContours, extract_contours
-from slamtka.solver.observations import ViewObservation
 from slamtka.solver.plan import Plan
 from slamtka.solver.slam import SolverConfig, solve_joint
 
@@ -171,10 +170,8 @@ def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
                 row["frames"].append(entry)
             if found is not None:
                 d = frame.radiograph.distortion
-                views.append(ViewObservation(f"view{k + 1}", frame.radiograph.camera,
-                                             {lb: d.undistort(p) if len(p) else p
-                                              for lb, p in found.as_dict().items()},
-                                             found.diagnostics["missing"]))
+                views.append(found.observation(f"view{k + 1}", frame.radiograph.camera,
+                                               d.undistort, d.distort))
         if refusal is not None:
             row["levels"][level] = {"status": "refused", "reason": refusal}
             continue

@@ -37,18 +37,23 @@ Manual contours (the in-vivo protocol had the surgeon draw them) are read by
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
 from slamtka.solver.imaging.response import linearised_attenuation
 from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.observations import ViewObservation, VisibleRegion
 
-__all__ = ["ContourConfig", "ExtractedContours", "extract_contours", "load_manual_contours",
-           "ContourError"]
+__all__ = ["VISIBLE_CELL_PX", "ContourConfig", "ExtractedContours", "extract_contours",
+           "load_manual_contours", "ContourError"]
+
+VISIBLE_CELL_PX = 4  # the bone's visible region is kept in cells of this many pixels
 
 _CONTOURS_FORMAT = "slamtka-contours/1"
 
@@ -112,9 +117,27 @@ class ExtractedContours:
     pin1: np.ndarray
     pin2: np.ndarray
     diagnostics: dict = field(default_factory=dict)
+    # Where a bone edge would have been kept, in cells of VISIBLE_CELL_PX raw pixels (the
+    # solver's VisibleRegion once undistorted); None for contours not extracted here.
+    bone_visible: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
+
+    def observation(self, view_id: str, camera: Camera,
+                    undistort: Callable[[np.ndarray], np.ndarray],
+                    distort: Callable[[np.ndarray], np.ndarray]) -> ViewObservation:
+        """The solver's view of these contours, undistorted (``undistort`` and ``distort``
+        map raw to ideal pixels and back), with what the frame hides and why a pin has no
+        contour."""
+        visible = None
+        if self.bone_visible is not None:
+            visible = VisibleRegion.from_raw(self.bone_visible, VISIBLE_CELL_PX,
+                                             (camera.width, camera.height), distort)
+        return ViewObservation(
+            view_id, camera, {label: undistort(points) if len(points) else points
+                              for label, points in self.as_dict().items()},
+            dict(self.diagnostics.get("missing", {})), visible)
 
 
 # -- sub-pixel edges along normals ----------------------------------------------------------
@@ -720,7 +743,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
     rim_ok &= _distance_to(broad) > margin
-    bone = _keep(bone, rim_ok & (_distance_to(pins) > config.pin_exclusion_px) & (to_air > 3.0))
+    # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
+    # the pins' shadows (air shows it too: a bone there would stand out).
+    bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
+    bone = _keep(bone, bone_visible & (to_air > 3.0))
     pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
     missing = {label: _why_missing(k, expected_pins, broad)
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
@@ -733,7 +759,9 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }
-    return ExtractedContours(bone, pin1, pin2, diagnostics)
+    half = VISIBLE_CELL_PX // 2
+    return ExtractedContours(bone, pin1, pin2, diagnostics,
+                             bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy())
 
 
 def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:

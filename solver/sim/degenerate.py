@@ -35,8 +35,7 @@ class DegenerateCase:
 
 
 def _with_contours(views: list[ViewObservation], change) -> list[ViewObservation]:
-    return [ViewObservation(v.view_id, v.camera, {label: change(k, label, pts)
-                                                  for label, pts in v.contours.items()})
+    return [v.with_contours(**{label: change(k, label, pts) for label, pts in v.contours.items()})
             for k, v in enumerate(views)]
 
 
