@@ -8,14 +8,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamtka.solver.geometry import Pose, largest_angle_deg
+from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
+from slamtka.solver.measurement import pin_axis_points
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.terms import BackProjectionTerm
 
-__all__ = ["InputDiagnostics", "OutlineFit", "PinGraze", "SolveDiagnostics", "StrayShare",
-           "diagnose", "input_diagnostics", "outline_fits", "residual_rms", "view_separation_deg"]
+__all__ = ["InputDiagnostics", "OutlineFit", "PinGraze", "PinOverlap", "SolveDiagnostics",
+           "StrayShare", "diagnose", "input_diagnostics", "outline_fits", "pin_overlaps",
+           "residual_rms", "view_separation_deg"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,15 @@ class PinGraze:
 
 
 @dataclass(frozen=True)
+class PinOverlap:
+    """How much of one pin's shadow lies on the other's in a view: the larger share of
+    either pin's projected axis within a projected radius of the other's axis."""
+
+    view_id: str
+    share: float
+
+
+@dataclass(frozen=True)
 class SolveDiagnostics:
     """A finished solve's answer, measured; everything the answer gates need."""
 
@@ -70,6 +81,7 @@ class SolveDiagnostics:
     outlines: tuple[OutlineFit, ...]  # every model in every view
     pin_divergence_deg: float  # angle between the pins' axes
     view_separation_deg: float  # of the solved views
+    pin_overlaps: tuple[PinOverlap, ...] = ()  # every view, at the solved poses
 
 
 def view_separation_deg(views: list[Pose]) -> float:
@@ -116,6 +128,32 @@ def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
     return tuple(fits)
 
 
+def _segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances of points ``p`` (N, 2) from the segment ``a``-``b``."""
+    ab = b - a
+    t = np.clip((p - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return row_norms(p - (a + t[:, None] * ab))
+
+
+def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
+    """How far the two pins' shadows lie on each other in each view at ``state``: seen one
+    behind the other, a view cannot tell which contour belongs to which pin."""
+    plan, n = problem.plan, problem.n_views
+    radius = float(np.max(np.hypot(*np.asarray(plan.pin_mesh.vertices)[:, :2].T)))
+    overlaps = []
+    for k, view in enumerate(problem.views):
+        in_camera = [state.poses[k].apply(pin_axis_points(T, plan.pin_length()))
+                     for T in state.poses[n:]]
+        axes = [view.camera.project(p) for p in in_camera]
+        # Axes closer than a radius (pixels, at the nearer pin's depth): the shadows lie
+        # more than half on each other, and neither pin shows both of its edges.
+        reach = radius * view.camera.fx / min(float(np.min(p[:, 2])) for p in in_camera)
+        share = max(float(np.mean(_segment_distances(axes[i], axes[j][0], axes[j][-1]) <= reach))
+                    for i, j in ((0, 1), (1, 0)))
+        overlaps.append(PinOverlap(view.view_id, share))
+    return tuple(overlaps)
+
+
 def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDiagnostics:
     """The figures the answer gates read, for the final energy ``terms`` at ``state``."""
     rms, n_residuals = residual_rms(terms, state)
@@ -135,5 +173,5 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
         strays, problem.config.sampling.max_ray_miss_mm, grazes,
         outline_fits(problem, state, LABELS), divergence,
-        view_separation_deg(list(state.poses[:problem.n_views])))
+        view_separation_deg(list(state.poses[:problem.n_views])), pin_overlaps(problem, state))
 

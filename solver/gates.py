@@ -19,7 +19,7 @@ from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
 __all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
-           "odometry_misfit", "outline_misfit", "pin_divergence", "view_separation"]
+           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_overlap", "view_separation"]
 
 
 class Why(StrEnum):
@@ -97,6 +97,19 @@ def hidden_outline(d: SolveDiagnostics, limits: GateLimits) -> str | None:
                     f"({100 * fit.visible_share:.0f}% of it < "
                     f"{100 * limits.min_visible_outline_share:.0f}%; metal, collimator blades "
                     f"or the field's edge hide the rest)")
+    return None
+
+
+def pins_overlap(d: SolveDiagnostics, limits: GateLimits) -> str | None:
+    """Why some view cannot tell the two pins apart, or None: seen one behind the other,
+    their shadows are one bar, and which of its edges is which pin's is a guess. Read when
+    the contours do not fit, to name the cause (pins that cross in projection but fit are
+    measured)."""
+    for overlap in d.pin_overlaps:
+        if overlap.share > limits.max_pin_overlap_share:
+            return (f"view {overlap.view_id}: the two pins lie one behind the other "
+                    f"({100 * overlap.share:.0f}% of a pin's shadow on the other's > "
+                    f"{100 * limits.max_pin_overlap_share:.0f}%); take that view from another angle")
     return None
 
 

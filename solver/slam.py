@@ -218,8 +218,15 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.pin_divergence, Why.GATE_FAILED),
                       (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
         misfit = gate(d, limits)
-        if misfit is not None:
-            return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
+        if misfit is None:
+            continue
+        # Where the pins' shadows lie on each other, that is why they do not fit; no
+        # restart can part them.
+        overlapping = gates.pins_overlap(d, limits) if why is Why.GATE_FAILED else None
+        if overlapping is not None:
+            return _refused(problem, Why.PINS_INDISTINCT, f"{overlapping} ({misfit})", state,
+                            report, rms, start)
+        return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)

@@ -75,6 +75,7 @@ class GateLimits:
     max_odometry_rms_sigma: float = 7.5
     max_coarse_bone_median_px: float = 4.0
     min_visible_outline_share: float = 0.4
+    max_pin_overlap_share: float = 0.6
     max_angle_sigma_deg: float = 2.0
 
 

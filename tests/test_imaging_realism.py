@@ -199,3 +199,14 @@ def test_the_frame_says_where_a_bone_edge_could_not_be_seen(phantom_plan, scene)
         assert hidden.mean() > 0.05
         assert np.mean(region.contains(truth[hidden])) < 0.1
         assert np.mean(region.contains(truth[shown])) > 0.95
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_pins_seen_one_behind_the_other_are_refused_naming_the_view():
+    """Seed 1 of the surgeon's views: view 1 (-50 deg) sees the pins one behind the other,
+    and extraction calls the one bar pin 1 and its tip pin 2. The pins' outlines do not fit
+    and the refusal says why, naming the view."""
+    row = realism_case(("phantom", "views", 1, (1,), str(SHARED_DATA)))
+    result = row["levels"][1]
+    assert result["status"] == "refused"
+    assert result["reason"].startswith("view view1: the two pins lie one behind the other")

@@ -674,3 +674,18 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
     assert refusal == ("the two pins cannot be told apart in view view2: both namings fit (final cost "
                        "1000 against 1010) and give planes 7.0 deg apart in CTR and 1.0 deg in STR; "
                        "take a view from another angle")
+
+
+def test_pins_one_behind_the_other_are_measured_as_overlapping(phantom_plan):
+    """At -50 deg the phantom's pins of seed 1 lie one behind the other in view 1 (their
+    axes within a radius over 7/8 of their length); the usual +-30 deg views see them apart."""
+    from slamtka.solver.diagnostics import pin_overlaps
+
+    for angles, overlapping in (((-49.67, 37.54), {"view1"}), ((-30.0, 30.0), set())):
+        case = simulate_case(phantom_plan, SimulationConfig(seed=1, view_angles_deg=angles))
+        truth = State(tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin), np.zeros((0, 3)))
+        shares = {o.view_id: o.share for o in pin_overlaps(JointProblem(phantom_plan, case.views, SolverConfig()), truth)}
+        limit = GateLimits().max_pin_overlap_share
+        assert {v for v, share in shares.items() if share > limit} == overlapping, shares
+        if not overlapping:
+            assert max(shares.values()) < 0.2, shares
