@@ -218,8 +218,12 @@ class Pipeline:
                 None, "the frame does not match the C-arm calibration"))
         if raw is None:
             return None, source
-        if any(len(points) == 0 for points in (raw.pin1, raw.pin2)):
-            return None, f"{NO_CONTOURS} (fewer than two pins)"
+        missing = [label for label, points in (("pin1", raw.pin1), ("pin2", raw.pin2))
+                   if len(points) == 0]
+        if missing:
+            why = raw.diagnostics.get("missing", {})
+            return None, f"{NO_CONTOURS} (fewer than two pins: " + "; ".join(
+                f"{label} {why.get(label, 'not found')}" for label in missing) + ")"
         return {label: self.calibration.undistort_points(points)
                 for label, points in raw.as_dict().items()}, source
 
