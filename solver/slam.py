@@ -138,9 +138,11 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
                       callback: Callable[[str, IterationInfo], None] | None,
                       start: float) -> SolveOutcome:
     """A solve from the encoders' guess, restarted from the global set-up searches in turn
-    while it goes astray."""
+    while it goes astray. If none measures, the refusal is that of the first attempt that
+    converged (its gates say what does not fit), else of the last: a restart that lost its
+    way says less about the images than a solve that found the bone and failed a gate."""
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-    outcome = _solve_from(problem, initial, poses, callback, start)
+    outcome = best = _solve_from(problem, initial, poses, callback, start)
     iterations = outcome.iterations
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
                 for T, view in zip(initial.T_cam_tibia, problem.views)]
@@ -153,8 +155,11 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
         outcome = _solve_from(problem, initial, searched, callback, start)
         outcome.initialisation = "global set-up search"
         iterations += outcome.iterations
-        outcome.iterations = iterations
-    return outcome
+        if best.why is Why.NOT_CONVERGED:
+            best = outcome
+    chosen = outcome if outcome.status == "measured" else best
+    chosen.iterations = iterations
+    return chosen
 
 
 def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,

@@ -689,3 +689,26 @@ def test_pins_one_behind_the_other_are_measured_as_overlapping(phantom_plan):
         assert {v for v, share in shares.items() if share > limit} == overlapping, shares
         if not overlapping:
             assert max(shares.values()) < 0.2, shares
+
+
+def test_a_refusal_after_restarts_says_what_the_converged_attempt_found(phantom_plan, monkeypatch):
+    """A solve that found the bone but failed a gate, then restarts that lost their way:
+    the refusal is the first one's (what does not fit), not the last restart's."""
+    from slamtka.solver import slam
+
+    case = simulate_case(phantom_plan, SimulationConfig(seed=0))
+    problem = JointProblem(phantom_plan, case.views, SolverConfig())
+    attempts = iter([(Why.GATE_FAILED, "contours do not fit the models (re-projection RMS 5.7 px)"),
+                     (Why.NOT_CONVERGED, "the solve did not converge (astray)"),
+                     (Why.NOT_CONVERGED, "the solve did not converge (astray again)"),
+                     (Why.NOT_CONVERGED, "the solve did not converge (astray once more)")])
+
+    def attempt(problem, initial, poses, callback, start):
+        why, reason = next(attempts)
+        return slam._refused(problem, why, reason, None, None, {}, start, poses, went_astray=True)
+
+    monkeypatch.setattr(slam, "_solve_from", attempt)
+    monkeypatch.setattr(slam, "search_setup", lambda *args: Pose.identity())
+    outcome = slam._solve_restarting(problem, case.initial, None, 0.0)
+    assert outcome.why is Why.GATE_FAILED and outcome.reason.startswith("contours do not fit")
+    assert next(attempts, None) is None  # every global search was tried
