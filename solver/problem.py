@@ -76,36 +76,46 @@ class JointProblem:
         self.coarse_pixels = {key: thin_contour(px, config.sampling.edge_spacing_px * config.sampling.coarse_thinning)
                               for key, px in self.pixels.items()}
 
-    def attributed(self, poses: tuple[Pose, ...]) -> JointProblem:
-        """The problem without the bone contour pixels that no part of the tibia's outline,
-        traced at ``poses``, comes near (``SamplingConfig.foreign_edge_px``): the edges of a
-        femur, a patella, a retractor or a collimator blade that extraction could not tell
-        from the tibia's. Only views whose traced outline lies on their contour (median
-        ``max_coarse_bone_median_px``) are pruned: a model off its contour says nothing
-        about which edges are its own. ``self`` when nothing is dropped."""
+    def attributed(self, poses: tuple[Pose, ...], labels: tuple[str, ...]) -> JointProblem:
+        """The problem without the contour pixels of ``labels`` that no part of their
+        models' outlines, traced at ``poses``, comes near (``SamplingConfig.foreign_edge_px``):
+        the edges of a femur, a patella, a retractor or a collimator blade that extraction
+        could not tell from the tibia's, or a halo beside the pins taken for a pin's (a
+        pixel near the other pin is a naming question, not a foreign edge: kept). Only
+        contours whose own model's outline lies on them (median ``max_coarse_bone_median_px``
+        over its visible part) are pruned: a model off its contour says nothing about which
+        edges are its own. ``self`` when nothing is dropped."""
         c = self.config
         views = list(self.views)
         for k, view in enumerate(self.views):
-            pixels = view.contours["bone"]
-            if len(pixels) == 0:
+            outlines = {label: self._outline_px(k, label, poses) for label in labels}
+            if not any(len(uv) for uv in outlines.values()):
                 continue
-            T = poses[k]
-            outline = self.bone.contour.outline_points(T, view.camera, c.sampling.silhouette_spacing_px,
-                                                       outer_only=True)
-            if len(outline) == 0:
-                continue
-            uv = view.camera.project(T.apply(outline))
-            seen = uv if view.bone_visible is None else uv[view.bone_visible.contains(uv)]
-            if len(seen) == 0 or float(np.median(view.distance_map("bone").query(seen)[0])) > \
-                    c.gates.max_coarse_bone_median_px:
-                continue
-            near = cKDTree(uv).query(pixels)[0] <= c.sampling.foreign_edge_px
-            if near.all():
-                continue
-            views[k] = view.with_contours(bone=pixels[near])
+            nearby = cKDTree(np.vstack([uv for uv in outlines.values() if len(uv)]))
+            kept = {}
+            for label in labels:
+                pixels, uv = view.contours[label], outlines[label]
+                if self.body_index(label) is None and view.bone_visible is not None:
+                    uv = uv[view.bone_visible.contains(uv)]
+                if len(pixels) == 0 or len(uv) == 0 or float(np.median(
+                        view.distance_map(label).query(uv)[0])) > c.gates.max_coarse_bone_median_px:
+                    continue
+                near = nearby.query(pixels)[0] <= c.sampling.foreign_edge_px
+                if not near.all():
+                    kept[label] = pixels[near]
+            if kept:
+                views[k] = view.with_contours(**kept)
         if all(a is b for a, b in zip(views, self.views)):
             return self
         return JointProblem(self.plan, views, c, self.naming_fixed)
+
+    def _outline_px(self, k: int, label: str, poses: tuple[Pose, ...]) -> np.ndarray:
+        """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
+        view, body = self.views[k], self.body_index(label)
+        T = poses[k] if body is None else poses[k] @ poses[body]
+        outline = self.model(label).contour.outline_points(
+            T, view.camera, self.config.sampling.silhouette_spacing_px, outer_only=body is None)
+        return view.camera.project(T.apply(outline)) if len(outline) else np.zeros((0, 2))
 
     def point_counts(self) -> dict[str, int]:
         """Kept contour points per view and label, for the result document."""

@@ -58,6 +58,9 @@ class Stage:
     budget: Budget | None = "fine"
     thinned: bool = False  # contours and outlines sampled sparsely (SamplingConfig.coarse_thinning)
     odometry: bool = False  # with E_odo, where the method uses it
+    # After the stage, contour pixels of its labels that no part of the posed models'
+    # outlines comes near are dropped (SamplingConfig.foreign_edge_px).
+    attributed: bool = False
 
 
 @dataclass(frozen=True)
@@ -69,9 +72,10 @@ class MethodSchedule:
 
 
 _BONE = Stage(Step.BONE_SILHOUETTE, "coarse bone", ("bone",), Held.PINS, "coarse", thinned=True,
-              odometry=True)
+              odometry=True, attributed=True)
 _PINS = Stage(Step.TRIANGULATE_PINS, budget=None)
-_COARSE_PINS = Stage(Step.SILHOUETTES, "coarse pins", PIN_LABELS, Held.VIEWS, "coarse_pins")
+_COARSE_PINS = Stage(Step.SILHOUETTES, "coarse pins", PIN_LABELS, Held.VIEWS, "coarse_pins",
+                     attributed=True)
 _SLAM = (
     _BONE, _PINS, _COARSE_PINS,
     Stage(Step.SILHOUETTES, "coarse all", budget="coarse_all", thinned=True, odometry=True),

@@ -225,12 +225,11 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         misfit = gate(d, limits)
         if misfit is None:
             continue
-        # Where the pins' shadows lie on each other, that is why they do not fit; no
-        # restart can part them.
+        # Where the pins' shadows lie on each other, that is why they do not fit (unless a
+        # restart finds poses where they do).
         overlapping = gates.pins_overlap(d, limits) if why is Why.GATE_FAILED else None
         if overlapping is not None:
-            return _refused(problem, Why.PINS_INDISTINCT, f"{overlapping} ({misfit})", state,
-                            report, rms, start)
+            why, misfit = Why.PINS_INDISTINCT, f"{overlapping} ({misfit})"
         return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:

@@ -142,8 +142,7 @@ class StageRunner:
                                        thinned=stage.thinned)
             state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
                                self._options(stage), f"{stage.name} x{scale:g}")
-        if c.sampling.foreign_edge_px is not None:
-            p = self.problem = p.attributed(state.poses)
+        p = self.problem = self._attributed(stage, state)
         astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
                                       c.gates.max_coarse_bone_median_px, c.gates)
         if astray is not None:
@@ -167,7 +166,15 @@ class StageRunner:
             return StagesResult(result.state, terms, result.report)
         state, report = self.lm(terms, result.state, self._held(stage), self._options(stage),
                                 stage.name)
+        if stage.attributed:
+            self.problem = self._attributed(stage, state)
         return StagesResult(state, terms, report)
+
+    def _attributed(self, stage: Stage, state: State) -> JointProblem:
+        """The problem without the foreign edges of the stage's labels (if it drops any)."""
+        if not stage.attributed or self.problem.config.sampling.foreign_edge_px is None:
+            return self.problem
+        return self.problem.attributed(state.poses, stage.labels)
 
     def _edges(self, stage: Stage, result: StagesResult) -> StagesResult:
         """The stage's edge points seated on their rays, E_rp + E_bp only."""
