@@ -273,18 +273,21 @@ def test_serve_exits_non_zero_when_the_worker_thread_has_ended(service):
     assert [e["event"] for e in read_audit(service.config.audit_log)][-1] == "service_stopped"
 
 
+@pytest.mark.system
 def test_a_second_serve_on_the_same_data_folder_is_refused_at_once(tmp_path):
     result = run_items(tmp_path, {"second_instance": 1})["second_instance"]
     assert result["failures"] == 0, result
     assert result["exit_status"] == 75
 
 
+@pytest.mark.system
 def test_a_damaged_spool_is_quarantined_and_the_service_starts(tmp_path):
     result = run_items(tmp_path, {"damaged_spool": 4})["damaged_spool"]
     assert result["failures"] == 0, result
     assert result["quarantined"] == 4 and len(result["damaged"]) == 4
 
 
+@pytest.mark.system
 @pytest.mark.skipif(os.geteuid() != 0, reason="mounting a tmpfs needs root")
 def test_a_real_enospc_loses_no_acknowledged_frame_and_the_worker_measures_on(tmp_path):
     result = run_items(tmp_path, {"enospc": 1})["enospc"]

@@ -733,5 +733,5 @@ def test_a_halo_taken_for_a_pin_is_left_out_once_the_pins_are_posed(phantom_plan
     # Kept (no foreign edges dropped at all), the halo's edge points sit off the pin: refused
     # (so on seeds 0-5, each measured within 0.11 deg with the halo dropped).
     kept = solve_joint(phantom_plan, views, case.initial,
-                       SolverConfig(sampling=SamplingConfig(foreign_edge_px=None)))
+                       SolverConfig(sampling=SamplingConfig(foreign_edge_px=None), global_searches=()))
     assert kept.status == "not_measured" and "pin1 edge points of view view2" in kept.reason
