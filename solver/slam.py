@@ -119,9 +119,11 @@ def solve_joint(
         outcome.unclear_naming = []
         return outcome
     # From the views the first solve found (the bone's fit does not depend on the pins'
-    # names), and without the global searches: astray, this naming simply does not measure.
+    # names: its stage is not run again), and without the global searches: astray, this
+    # naming simply does not measure.
     other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
-                        tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
+                        tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start,
+                        views_known=True)
     chosen, refusal = settle_naming(outcome, other, unclear)
     log.info("views %s: pin names open; swapped they %s (%s)", unclear,
              "fit better" if chosen is other else "fit no better", other.status)
@@ -179,8 +181,10 @@ def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,
 
 def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
                 callback: Callable[[str, IterationInfo], None] | None,
-                start: float) -> SolveOutcome:
-    """One solve of the configured method from ``poses``, with its gates and uncertainty."""
+                start: float, views_known: bool = False) -> SolveOutcome:
+    """One solve of the configured method from ``poses``, with its gates and uncertainty;
+    with ``views_known`` (the views of ``poses`` are those of a finished solve) without
+    the image alignment and the bone stage."""
     n = problem.n_views
     # Global step, shared by every method: where in each image is the bone? The views are
     # searched in parallel threads (OpenCV's template correlation releases the GIL), each
@@ -191,10 +195,11 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
             view.distance_map(label)
         return align_view_in_image(problem.bone.contour, T, view.camera, view.distance_map("bone"))
 
-    with ThreadPoolExecutor(n) as pool:
-        poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
+    if not views_known:
+        with ThreadPoolExecutor(n) as pool:
+            poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
     runner = StageRunner(problem, initial, callback)
-    result = runner.run(State(poses, np.zeros((0, 3))))
+    result = runner.run(State(poses, np.zeros((0, 3))), views_known)
     fine = result.report
     report = SolveReport(fine.converged, fine.reason, runner.iterations, fine.cost,
                          fine.term_costs, runner.seconds, fine.history)

@@ -97,10 +97,17 @@ class StageRunner:
         self.seconds += report.seconds
         return state, report
 
-    def run(self, state: State) -> StagesResult:
-        """Every stage of the method's table in order (:mod:`.schedule`)."""
+    def run(self, state: State, views_known: bool = False) -> StagesResult:
+        """Every stage of the method's table in order (:mod:`.schedule`); with
+        ``views_known`` (``state`` holds the views of a finished solve) from after the bone
+        stage, the bone's foreign edges dropped at those views."""
         result = StagesResult(state, [], SolveReport(False, "not run", 0, 0.0, {}, 0.0, []))
-        for stage in self.schedule.stages:
+        stages = self.schedule.stages
+        if views_known:
+            bone = next(i for i, stage in enumerate(stages) if stage.step is Step.BONE_SILHOUETTE)
+            self.problem = self._attributed(stages[bone], state)
+            stages = stages[bone + 1:]
+        for stage in stages:
             if stage.step is Step.BONE_SILHOUETTE:
                 result, stopped = self._bone(stage, result)
                 if stopped:
