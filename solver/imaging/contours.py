@@ -346,6 +346,7 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
 
 
 _HEAD_MARGIN_PX = 3.0
+_PIN_EDGE_REACH_PX = 6.0  # an edge this far from both pins' bars belongs to another shadow
 # The two pins of a block are parallel and alike: two shadows are taken as the pair only
 # when this close in direction and width; of several such pairs, the closest.
 _PIN_CANDIDATES = 6
@@ -510,6 +511,11 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
         bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
+    if overlap == "apart":
+        # The outline of every steel-like shadow was traced: only the pair's own edges
+        # are the pins' (a processed plateau's dark band beside a pin is not).
+        own = np.min(distance, axis=0) <= _PIN_EDGE_REACH_PX
+        edges, distance = edges[own], distance[:, own]
     # Where the two pins' edges are closer than a step can be seen, a point is on both.
     shared = 0.5 * config.pin_min_step_px
     result = [_without_head(edges[distance[i] <= distance[1 - i] + shared], bars[i]) for i in range(2)]
@@ -560,7 +566,13 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     tissue around them, unlike the marrow inside a bone, which carries the bone's walls.
     """
     magnitude = np.hypot(grad[0], grad[1])
-    barrier = cv2.dilate((magnitude > config.barrier_strength).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    # A C-arm's edge enhancement gives soft tissue gradients of its own (halos, sharpened
+    # skin lines): where half the field changes faster than the barrier, the tissue is cut
+    # into pieces and the bone mask leaks into them. The barrier then rises to twice the
+    # field's median gradient (bone edges are stronger still).
+    barrier_strength = max(config.barrier_strength,
+                           _TISSUE_GRADIENT_FACTOR * float(np.median(magnitude[valid][::7])))
+    barrier = cv2.dilate((magnitude > barrier_strength).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
     open_area = (valid & ~barrier & ~air).astype(np.uint8)
     count, labels = cv2.connectedComponents(open_area, connectivity=4)
     seeded = np.bincount(labels[skin & (open_area > 0)], minlength=count) > 0
@@ -616,6 +628,7 @@ def _smoothing_for_noise(A: np.ndarray, valid: np.ndarray, config: ContourConfig
     return float(np.clip(needed, config.smoothing_px, _MAX_SMOOTHING_PX))
 
 
+_TISSUE_GRADIENT_FACTOR = 2.0
 _GRADIENT_NOISE_SHARE = 0.25  # of the barrier strength: the gradient noise's SD at most
 _MAX_SMOOTHING_PX = 4.0
 
