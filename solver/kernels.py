@@ -10,7 +10,9 @@ points) is the same story: one pass instead of some twenty array passes, and so 
 rasterisation of a model's projected footprint (every few iterations of every silhouette
 term) and the search for each observed contour pixel's nearest outline point (every
 iteration of every silhouette term: building and querying a KD-tree for a thousand points
-cost more than the rest of the term).
+cost more than the rest of the term), and the bilinear lookup of an image's distance map
+(every iteration of every term on a view's contour: a few hundred points, where numpy's
+per-call overhead of some twenty array passes dominated).
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -20,7 +22,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -82,6 +84,40 @@ def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: 
                         blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
                                                  + Y[a, r, 2] * W[x, b, c, 2])
     return blocks, shift, V_inv
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear(values: np.ndarray, origin: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear interpolation of the image ``values`` (h, w), whose pixel (0, 0) lies at
+    ``origin`` (u, v), at ``uv`` (N, 2), and the interpolant's gradient (N, 2) in d/du,
+    d/dv. Beyond the image the distance to it is added and its direction becomes the
+    gradient along the clamped axes (see ``DistanceMap.query``)."""
+    n = uv.shape[0]
+    h, w = values.shape
+    value = np.empty(n)
+    grad = np.empty((n, 2))
+    upper_u, upper_v = w - 1 - 1e-9, h - 1 - 1e-9
+    for p in range(n):
+        lu, lv = uv[p, 0] - origin[0], uv[p, 1] - origin[1]
+        u, v = min(max(lu, 0.0), upper_u), min(max(lv, 0.0), upper_v)
+        iu, iv = int(u), int(v)  # floor: both are >= 0
+        fu, fv = u - iu, v - iv
+        v00, v10 = float(values[iv, iu]), float(values[iv, iu + 1])
+        v01, v11 = float(values[iv + 1, iu]), float(values[iv + 1, iu + 1])
+        top = v00 * (1 - fu) + v10 * fu
+        bottom = v01 * (1 - fu) + v11 * fu
+        value[p] = top * (1 - fv) + bottom * fv
+        grad[p, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
+        grad[p, 1] = bottom - top
+        out_u, out_v = lu - u, lv - v
+        if out_u != 0.0 or out_v != 0.0:
+            dist_out = np.sqrt(out_u * out_u + out_v * out_v)
+            value[p] += dist_out
+            if out_u != 0.0:
+                grad[p, 0] = out_u / dist_out
+            if out_v != 0.0:
+                grad[p, 1] = out_v / dist_out
+    return value, grad
 
 
 @numba.njit(cache=True, nogil=True)
@@ -251,5 +287,6 @@ def warm_up() -> None:
                      np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
+    bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
     for gradient in (False, True):
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from slamtka.solver.kernels import nearest_points
+from slamtka.solver.kernels import bilinear, nearest_points
 
 
 @pytest.mark.parametrize("n_points", [1, 7, 900])
@@ -19,3 +19,24 @@ def test_nearest_points_is_the_exact_nearest_neighbour(n_points):
         found = nearest_points(points, queries, cell)
         np.testing.assert_allclose(np.linalg.norm(queries - points[found], axis=1), brute,
                                    rtol=0, atol=1e-9)
+
+
+def test_bilinear_is_exact_on_a_plane_and_grows_by_the_distance_beyond():
+    """An image of an affine function is interpolated exactly, gradient included; beyond
+    the image the value at the nearest border point grows by the distance to it, and the
+    clamped axes' gradient points away from the image."""
+    h, w, origin = 40, 60, np.array([100.0, 200.0])
+    vv, uu = np.mgrid[0:h, 0:w]
+    values = (0.3 * uu - 0.7 * vv + 5.0).astype(np.float32)
+    rng = np.random.default_rng(1)
+    inside = origin + rng.uniform(0.0, [w - 1, h - 1], (300, 2))
+    value, grad = bilinear(values, origin, inside)
+    local = inside - origin
+    np.testing.assert_allclose(value, 0.3 * local[:, 0] - 0.7 * local[:, 1] + 5.0, atol=1e-5)
+    np.testing.assert_allclose(grad, np.tile([0.3, -0.7], (300, 1)), atol=1e-5)
+    beyond = origin + np.array([[-3.0, 10.0], [w - 1 + 4.0, h - 1 + 3.0], [20.0, -2.0]])
+    value, grad = bilinear(values, origin, beyond)
+    border = np.array([[0.0, 10.0], [w - 1, h - 1], [20.0, 0.0]])
+    plane = 0.3 * border[:, 0] - 0.7 * border[:, 1] + 5.0
+    np.testing.assert_allclose(value, plane + [3.0, 5.0, 2.0], atol=1e-5)
+    np.testing.assert_allclose(grad, [[-1.0, -0.7], [0.8, 0.6], [0.3, -1.0]], atol=1e-5)
