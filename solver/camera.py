@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamtka.solver.geometry import row_norms
+from slamtka.solver.kernels import pinhole
 
 __all__ = ["Camera"]
 
@@ -84,25 +85,18 @@ class Camera:
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    @property
+    def _intrinsics(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) as floats: one compiled projection kernel for every camera."""
+        return float(self.fx), float(self.fy), float(self.cx), float(self.cy)
+
     def project(self, p_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of camera-frame points (N, 3)."""
-        z = np.maximum(p_cam[:, 2], MIN_DEPTH_MM)
-        return np.column_stack(
-            [self.fx * p_cam[:, 0] / z + self.cx, self.fy * p_cam[:, 1] / z + self.cy]
-        )
+        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, False)[0]
 
     def project_with_jacobian(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, 2) and their Jacobian (N, 2, 3) with respect to the camera-frame point."""
-        x, y = p_cam[:, 0], p_cam[:, 1]
-        z = np.maximum(p_cam[:, 2], MIN_DEPTH_MM)
-        inv_z = 1.0 / z
-        uv = np.column_stack([self.fx * x * inv_z + self.cx, self.fy * y * inv_z + self.cy])
-        J = np.zeros((len(p_cam), 2, 3))
-        J[:, 0, 0] = self.fx * inv_z
-        J[:, 0, 2] = -self.fx * x * inv_z**2
-        J[:, 1, 1] = self.fy * inv_z
-        J[:, 1, 2] = -self.fy * y * inv_z**2
-        return uv, J
+        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, True)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit directions (N, 3) in the camera frame of the rays through pixels (N, 2)."""

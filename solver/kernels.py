@@ -12,7 +12,8 @@ term) and the search for each observed contour pixel's nearest outline point (ev
 iteration of every silhouette term: building and querying a KD-tree for a thousand points
 cost more than the rest of the term), and the bilinear lookup of an image's distance map
 (every iteration of every term on a view's contour: a few hundred points, where numpy's
-per-call overhead of some twenty array passes dominated).
+per-call overhead of some twenty array passes dominated), as it does in the camera's
+projection of a term's points (several times per iteration and term).
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -22,7 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "footprint_mask", "nearest_points", "pinhole", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -84,6 +85,31 @@ def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: 
                         blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
                                                  + Y[a, r, 2] * W[x, b, c, 2])
     return blocks, shift, V_inv
+
+
+@numba.njit(cache=True, nogil=True)
+def pinhole(p_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, min_depth: float,
+            jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of camera-frame points (N, 3), their depth floored at ``min_depth``,
+    and when ``jacobian`` the projection's Jacobian (N, 2, 3) (else an empty (0, 2, 3))."""
+    n = p_cam.shape[0]
+    uv = np.empty((n, 2))
+    J = np.zeros((n if jacobian else 0, 2, 3))
+    for p in range(n):
+        x, y = p_cam[p, 0], p_cam[p, 1]
+        z = max(p_cam[p, 2], min_depth)
+        if jacobian:
+            inv_z = 1.0 / z
+            uv[p, 0] = fx * x * inv_z + cx
+            uv[p, 1] = fy * y * inv_z + cy
+            J[p, 0, 0] = fx * inv_z
+            J[p, 0, 2] = -fx * x * inv_z**2
+            J[p, 1, 1] = fy * inv_z
+            J[p, 1, 2] = -fy * y * inv_z**2
+        else:
+            uv[p, 0] = fx * x / z + cx
+            uv[p, 1] = fy * y / z + cy
+    return uv, J
 
 
 @numba.njit(cache=True, nogil=True)
@@ -288,5 +314,7 @@ def warm_up() -> None:
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
+    for jacobian in (False, True):
+        pinhole(np.ones((1, 3)), 1.0, 1.0, 0.0, 0.0, 1.0, jacobian)
     for gradient in (False, True):
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)
