@@ -14,8 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamtka.solver.geometry import row_norms
-from slamtka.solver.kernels import pinhole
+from slamtka.solver.kernels import in_field, pinhole
 
 __all__ = ["Camera"]
 
@@ -105,18 +104,15 @@ class Camera:
         )
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
+    @property
+    def fov_radius(self) -> float:
+        """The circular field of view's radius in pixels (inf: none)."""
+        return math.inf if self.fov_radius_px is None else float(self.fov_radius_px)
+
     def in_field(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Boolean mask of pixels inside the image and its circular field of view."""
-        inside = (
-            (uv[:, 0] >= margin_px)
-            & (uv[:, 1] >= margin_px)
-            & (uv[:, 0] <= self.width - 1 - margin_px)
-            & (uv[:, 1] <= self.height - 1 - margin_px)
-        )
-        if self.fov_radius_px is not None:
-            centre = np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
-            inside &= row_norms(uv - centre) <= self.fov_radius_px - margin_px
-        return inside
+        return in_field(np.asarray(uv, float).reshape(-1, 2), self.width, self.height, float(margin_px),
+                        self.fov_radius)
 
     def to_json(self) -> dict:
         return {

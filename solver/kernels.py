@@ -23,7 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "footprint_mask", "nearest_points", "pinhole", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -85,6 +85,61 @@ def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: 
                         blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
                                                  + Y[a, r, 2] * W[x, b, c, 2])
     return blocks, shift, V_inv
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _in_field(u: float, v: float, width: int, height: int, margin: float, radius: float) -> bool:
+    """Whether pixel (u, v) lies inside the image and its circular field of view of
+    ``radius`` (inf: none), ``margin`` pixels in from their edges."""
+    if not (u >= margin and v >= margin and u <= width - 1 - margin and v <= height - 1 - margin):
+        return False
+    du, dv = u - (width - 1) / 2.0, v - (height - 1) / 2.0
+    return np.sqrt(du * du + dv * dv) <= radius - margin
+
+
+@numba.njit(cache=True, nogil=True)
+def in_field(uv: np.ndarray, width: int, height: int, margin: float, radius: float) -> np.ndarray:
+    """Mask (N,) of the pixels ``uv`` (N, 2) inside the field of view (:func:`_in_field`)."""
+    inside = np.empty(uv.shape[0], np.bool_)
+    for p in range(uv.shape[0]):
+        inside[p] = _in_field(uv[p, 0], uv[p, 1], width, height, margin, radius)
+    return inside
+
+
+@numba.njit(cache=True, nogil=True)
+def outline_samples(uv_a: np.ndarray, uv_delta: np.ndarray, spacing: float, width: int, height: int,
+                    margin: float, radius: float, interior: np.ndarray, downscale: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Samples along projected edges from ``uv_a`` (E, 2) by ``uv_delta`` (E, 2), at the
+    centres of ``ceil(length / spacing)`` (at least one) equal sub-segments, kept when in
+    the field of view (:func:`_in_field`) and, when ``interior`` (h, w) is not empty, on a
+    zero pixel of that mask at 1/``downscale`` resolution. Each kept sample's edge and
+    fraction along it, in edge order."""
+    total = 0
+    counts = np.empty(uv_a.shape[0], np.int64)
+    for e in range(uv_a.shape[0]):
+        du, dv = uv_delta[e, 0], uv_delta[e, 1]
+        counts[e] = max(1, int(np.ceil(np.sqrt(du * du + dv * dv) / spacing)))
+        total += counts[e]
+    edge = np.empty(total, np.int64)
+    frac = np.empty(total)
+    h, w = interior.shape
+    kept = 0
+    for e in range(uv_a.shape[0]):
+        for place in range(counts[e]):
+            s = (place + 0.5) / counts[e]
+            u = uv_a[e, 0] + s * uv_delta[e, 0]
+            v = uv_a[e, 1] + s * uv_delta[e, 1]
+            if not _in_field(u, v, width, height, margin, radius):
+                continue
+            if h > 0:
+                iu = min(max(int(np.rint(u / downscale)), 0), w - 1)
+                iv = min(max(int(np.rint(v / downscale)), 0), h - 1)
+                if interior[iv, iu] != 0:
+                    continue
+            edge[kept], frac[kept] = e, s
+            kept += 1
+    return edge[:kept], frac[:kept]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -314,6 +369,9 @@ def warm_up() -> None:
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
+    in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
+    for mask in (np.zeros((0, 0), np.uint8), np.zeros((1, 1), np.uint8)):
+        outline_samples(np.zeros((1, 2)), np.ones((1, 2)), 1.0, 2, 2, 0.0, np.inf, mask, 4)
     for jacobian in (False, True):
         pinhole(np.ones((1, 3)), 1.0, 1.0, 0.0, 0.0, 1.0, jacobian)
     for gradient in (False, True):

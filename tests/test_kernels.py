@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from slamtka.solver.kernels import bilinear, nearest_points
+from slamtka.solver.kernels import bilinear, in_field, nearest_points, outline_samples
 
 
 @pytest.mark.parametrize("n_points", [1, 7, 900])
@@ -40,3 +40,25 @@ def test_bilinear_is_exact_on_a_plane_and_grows_by_the_distance_beyond():
     plane = 0.3 * border[:, 0] - 0.7 * border[:, 1] + 5.0
     np.testing.assert_allclose(value, plane + [3.0, 5.0, 2.0], atol=1e-5)
     np.testing.assert_allclose(grad, [[-1.0, -0.7], [0.8, 0.6], [0.3, -1.0]], atol=1e-5)
+
+
+def test_outline_samples_are_the_in_field_centres_of_equal_sub_segments():
+    """Each edge cut into ceil(length / spacing) equal parts, sampled at their centres, in
+    edge order; samples outside the (circular) field or on the interior mask are dropped."""
+    rng = np.random.default_rng(3)
+    uv_a = rng.uniform(-20.0, 120.0, (50, 2))
+    uv_delta = rng.normal(0.0, 8.0, (50, 2))
+    edge, frac = outline_samples(uv_a, uv_delta, 3.0, 100, 100, 2.0, 45.0, np.zeros((0, 0), np.uint8), 4)
+    counts = np.maximum(1, np.ceil(np.linalg.norm(uv_delta, axis=1) / 3.0)).astype(int)
+    every = [(e, (k + 0.5) / n) for e, n in enumerate(counts) for k in range(n)]
+    all_edge, all_frac = np.array(every).T
+    uv = uv_a[all_edge.astype(int)] + all_frac[:, None] * uv_delta[all_edge.astype(int)]
+    inside = in_field(uv, 100, 100, 2.0, 45.0)
+    assert inside.any() and not inside.all()
+    np.testing.assert_array_equal(edge, all_edge[inside])
+    np.testing.assert_array_equal(frac, all_frac[inside])
+    mask = np.zeros((25, 25), np.uint8)
+    mask[:, :12] = 1  # u < ~46 px is interior
+    edge, frac = outline_samples(uv_a, uv_delta, 3.0, 100, 100, 2.0, 45.0, mask, 4)
+    kept = uv_a[edge] + frac[:, None] * uv_delta[edge]
+    assert len(kept) and np.all(np.round(kept[:, 0] / 4) >= 12)
