@@ -174,9 +174,9 @@ class ContourGenerator:
         uv_ends = camera.project(T_cam_model.apply(ends.reshape(-1, 3))).reshape(-1, 2, 2)
         # Sampled at the centres of equal sub-segments, so shared end-points are not doubled;
         # most samples fall on interior folds: only the kept ones are carried to the model.
-        if outer_only and interior is None:
-            interior = self.interior(T_cam_model, camera)
-        mask = interior if outer_only else np.zeros((0, 0), np.uint8)
+        mask = np.zeros((0, 0), np.uint8)  # empty: no interior test
+        if outer_only:
+            mask = self.interior(T_cam_model, camera) if interior is None else interior
         edge_index, s = outline_samples(
             np.ascontiguousarray(uv_ends[:, 0]), uv_ends[:, 1] - uv_ends[:, 0], float(spacing_px),
             camera.width, camera.height, float(fov_margin_px), camera.fov_radius, mask, _MASK_DOWNSCALE)
