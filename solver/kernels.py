@@ -23,7 +23,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "scatter_add",
+           "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -202,6 +203,20 @@ def bilinear(values: np.ndarray, origin: np.ndarray, uv: np.ndarray) -> tuple[np
 
 
 @numba.njit(cache=True, nogil=True)
+def scatter_add(keys: np.ndarray, values: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``values`` (K, D) summed by their ``keys`` (K,) in 0..``n_keys`` - 1, in the
+    order given: the sums (n_keys, D) and which keys occurred (n_keys,)."""
+    sums = np.zeros((n_keys, values.shape[1]))
+    seen = np.zeros(n_keys, np.bool_)
+    for r in range(keys.shape[0]):
+        key = keys[r]
+        seen[key] = True
+        for d in range(values.shape[1]):
+            sums[key, d] += values[r, d]
+    return sums, seen
+
+
+@numba.njit(cache=True, nogil=True)
 def trilinear(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray,
               gradient: bool) -> tuple[np.ndarray, np.ndarray]:
     """Trilinear interpolation of the grid ``values`` (nx, ny, nz) at ``origin + spacing *
@@ -370,6 +385,7 @@ def warm_up() -> None:
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
     in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
+    scatter_add(np.zeros(1, np.int64), np.zeros((1, 1)), 1)
     for mask in (np.zeros((0, 0), np.uint8), np.zeros((1, 1), np.uint8)):
         outline_samples(np.zeros((1, 2)), np.ones((1, 2)), 1.0, 2, 2, 0.0, np.inf, mask, 4)
     for jacobian in (False, True):

@@ -20,7 +20,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from slamtka.solver.geometry import Pose
-from slamtka.solver.kernels import schur_complement
+from slamtka.solver.kernels import scatter_add, schur_complement
 
 __all__ = [
     "SharedError",
@@ -224,23 +224,26 @@ def _evaluate(terms: list[Term], state: State, jacobians: bool):
     return lins, costs
 
 
+def _scatter(keys: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`kernels.scatter_add` of ``values``' rows, whatever their shape."""
+    rows = np.ascontiguousarray(values.reshape(len(keys), int(np.prod(values.shape[1:]))))
+    sums, seen = scatter_add(np.asarray(keys, np.int64), rows, n)
+    return sums.reshape((n,) + values.shape[1:]), seen
+
+
 def _sum_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of ``values`` summed over equal ``keys``: the distinct keys, sorted, and their
-    sums (a vectorised scatter-add: one sort, then each run of equal keys reduced)."""
+    """Rows of ``values`` summed over equal ``keys`` (non-negative): the distinct keys,
+    sorted, and their sums (one compiled scatter-add over a dense table of the keys)."""
     if len(keys) == 0:
         return keys, values
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    return keys[starts], np.add.reduceat(values[order], starts)
+    sums, seen = _scatter(keys, values, int(keys.max()) + 1)
+    distinct = np.flatnonzero(seen)
+    return distinct, sums[distinct]
 
 
 def _sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """Rows of ``values`` summed by ``index`` into ``n`` bins."""
-    bins, sums = _sum_by_key(index, values)
-    summed = np.zeros((n,) + values.shape[1:])
-    summed[bins] = sums
-    return summed
+    return _scatter(index, values, n)[0]
 
 
 @dataclass
