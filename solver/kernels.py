@@ -13,7 +13,8 @@ iteration of every silhouette term: building and querying a KD-tree for a thousa
 cost more than the rest of the term), and the bilinear lookup of an image's distance map
 (every iteration of every term on a view's contour: a few hundred points, where numpy's
 per-call overhead of some twenty array passes dominated), as it does in the camera's
-projection of a term's points (several times per iteration and term).
+projection of a term's points (several times per iteration and term), the sampling of a
+traced outline, and the points' blocks of the normal equations and their sums by key.
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -23,8 +24,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "scatter_add",
-           "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks",
+           "scatter_add", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -200,6 +201,49 @@ def bilinear(values: np.ndarray, origin: np.ndarray, uv: np.ndarray) -> tuple[np
             if out_v != 0.0:
                 grad[p, 1] = out_v / dist_out
     return value, grad
+
+
+@numba.njit(cache=True, nogil=True)
+def point_blocks(Jx: np.ndarray, w: np.ndarray, residuals: np.ndarray, x_idx: np.ndarray,
+                 H_xx: np.ndarray, g_x: np.ndarray) -> np.ndarray:
+    """One term's share of the points' normal equations, added in place: per residual row
+    ``n`` of point ``x_idx[n]``, ``w Jx^T Jx`` to ``H_xx`` (X, 3, 3) and ``w Jx^T r`` to
+    ``g_x`` (X, 3), for its point Jacobian ``Jx`` (N, m, 3), weight ``w`` (N,) and
+    residuals (N, m). Returns the weighted Jacobians ``w Jx`` (N, m, 3)."""
+    n_rows, m = Jx.shape[0], Jx.shape[1]
+    Jx_w = np.empty_like(Jx)
+    for n in range(n_rows):
+        x = x_idx[n]
+        for k in range(m):
+            for i in range(3):
+                Jx_w[n, k, i] = w[n] * Jx[n, k, i]
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(m):
+                    acc += Jx_w[n, k, i] * Jx[n, k, j]
+                H_xx[x, i, j] += acc
+            acc = 0.0
+            for k in range(m):
+                acc += Jx[n, k, i] * (w[n] * residuals[n, k])
+            g_x[x, i] += acc
+    return Jx_w
+
+
+@numba.njit(cache=True, nogil=True)
+def coupling_blocks(Ja: np.ndarray, Jx_w: np.ndarray) -> np.ndarray:
+    """Per residual row, ``Ja^T Jx_w`` (N, 6, 3) of a pose Jacobian ``Ja`` (N, m, 6) and the
+    weighted point Jacobian ``Jx_w`` (N, m, 3)."""
+    n_rows, m = Ja.shape[0], Ja.shape[1]
+    out = np.empty((n_rows, 6, 3))
+    for n in range(n_rows):
+        for i in range(6):
+            for j in range(3):
+                acc = 0.0
+                for k in range(m):
+                    acc += Ja[n, k, i] * Jx_w[n, k, j]
+                out[n, i, j] = acc
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -386,6 +430,9 @@ def warm_up() -> None:
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
     in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
     scatter_add(np.zeros(1, np.int64), np.zeros((1, 1)), 1)
+    Jx_w = point_blocks(np.zeros((1, 2, 3)), np.ones(1), np.zeros((1, 2)), np.zeros(1, np.int64),
+                        np.zeros((1, 3, 3)), np.zeros((1, 3)))
+    coupling_blocks(np.zeros((1, 2, 6)), Jx_w)
     for mask in (np.zeros((0, 0), np.uint8), np.zeros((1, 1), np.uint8)):
         outline_samples(np.zeros((1, 2)), np.ones((1, 2)), 1.0, 2, 2, 0.0, np.inf, mask, 4)
     for jacobian in (False, True):

@@ -20,7 +20,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from slamtka.solver.geometry import Pose
-from slamtka.solver.kernels import scatter_add, schur_complement
+from slamtka.solver.kernels import coupling_blocks, point_blocks, scatter_add, schur_complement
 
 __all__ = [
     "SharedError",
@@ -295,14 +295,13 @@ def build_normal_equations(
             for b, Jb_w in weighted:
                 H_blocks[a, b] += Ja_w.T @ Jb_w
         if lin.point_jacobian is not None:
+            # Tiny blocks per residual row: compiled loops instead of batched products.
             x_idx, Jx = lin.point_jacobian
-            Jx_w = w[:, None, None] * Jx
-            # Batched products of these tiny blocks: matmul is 3x faster than einsum here.
-            H_xx[x_idx] += Jx_w.transpose(0, 2, 1) @ Jx
-            g_x[x_idx] += np.einsum("nmi,nm->ni", Jx, wr.reshape(lin.residuals.shape))
+            Jx_w = point_blocks(np.ascontiguousarray(Jx, float), w, np.ascontiguousarray(lin.residuals, float),
+                                np.asarray(x_idx, np.int64), H_xx, g_x)
             for a, Ja in lin.pose_jacobians:
                 coupling_keys.append(x_idx * P + a)
-                coupling_vals.append(Ja.transpose(0, 2, 1) @ Jx_w)
+                coupling_vals.append(coupling_blocks(np.ascontiguousarray(Ja, float), Jx_w))
     if coupling_keys:
         # One block per (point, pose) pair, summed over the terms that couple them.
         uniq, H_px = _sum_by_key(np.concatenate(coupling_keys), np.concatenate(coupling_vals))

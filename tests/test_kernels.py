@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from slamtka.solver.kernels import bilinear, in_field, nearest_points, outline_samples
+from slamtka.solver.kernels import (
+    bilinear,
+    coupling_blocks,
+    in_field,
+    nearest_points,
+    outline_samples,
+    point_blocks,
+    scatter_add,
+)
 
 
 @pytest.mark.parametrize("n_points", [1, 7, 900])
@@ -62,3 +70,26 @@ def test_outline_samples_are_the_in_field_centres_of_equal_sub_segments():
     edge, frac = outline_samples(uv_a, uv_delta, 3.0, 100, 100, 2.0, 45.0, mask, 4)
     kept = uv_a[edge] + frac[:, None] * uv_delta[edge]
     assert len(kept) and np.all(np.round(kept[:, 0] / 4) >= 12)
+
+
+def test_point_blocks_and_couplings_are_the_batched_products():
+    """The points' normal-equation blocks and their couplings to a pose equal numpy's
+    batched products; rows of one key are summed by the scatter-add."""
+    rng = np.random.default_rng(4)
+    n, m, X = 200, 2, 300
+    Jx, Ja = rng.normal(size=(n, m, 3)), rng.normal(size=(n, m, 6))
+    w, r = rng.uniform(0.1, 1.0, n), rng.normal(size=(n, m))
+    x_idx = rng.permutation(X)[:n]
+    H_xx, g_x = np.ones((X, 3, 3)), np.ones((X, 3))
+    Jx_w = point_blocks(Jx, w, r, x_idx, H_xx, g_x)
+    expected_H, expected_g = np.ones((X, 3, 3)), np.ones((X, 3))
+    expected_H[x_idx] += (w[:, None, None] * Jx).transpose(0, 2, 1) @ Jx
+    expected_g[x_idx] += np.einsum("nmi,nm->ni", Jx, w[:, None] * r)
+    np.testing.assert_allclose(H_xx, expected_H, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(g_x, expected_g, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(coupling_blocks(Ja, Jx_w), Ja.transpose(0, 2, 1) @ Jx_w, rtol=0, atol=1e-14)
+    keys = rng.integers(0, 7, 50)
+    values = rng.normal(size=(50, 4))
+    sums, seen = scatter_add(keys, values, 9)
+    np.testing.assert_allclose(sums, [values[keys == k].sum(axis=0) for k in range(9)], atol=1e-14)
+    np.testing.assert_array_equal(seen, [k in keys for k in range(9)])
