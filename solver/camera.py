@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slamtka.solver.geometry import row_norms
+from slamtka.solver.kernels import in_field, pinhole
 
 __all__ = ["Camera"]
 
@@ -84,25 +84,18 @@ class Camera:
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
+    @property
+    def _intrinsics(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) as floats: one compiled projection kernel for every camera."""
+        return float(self.fx), float(self.fy), float(self.cx), float(self.cy)
+
     def project(self, p_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of camera-frame points (N, 3)."""
-        z = np.maximum(p_cam[:, 2], MIN_DEPTH_MM)
-        return np.column_stack(
-            [self.fx * p_cam[:, 0] / z + self.cx, self.fy * p_cam[:, 1] / z + self.cy]
-        )
+        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, False)[0]
 
     def project_with_jacobian(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, 2) and their Jacobian (N, 2, 3) with respect to the camera-frame point."""
-        x, y = p_cam[:, 0], p_cam[:, 1]
-        z = np.maximum(p_cam[:, 2], MIN_DEPTH_MM)
-        inv_z = 1.0 / z
-        uv = np.column_stack([self.fx * x * inv_z + self.cx, self.fy * y * inv_z + self.cy])
-        J = np.zeros((len(p_cam), 2, 3))
-        J[:, 0, 0] = self.fx * inv_z
-        J[:, 0, 2] = -self.fx * x * inv_z**2
-        J[:, 1, 1] = self.fy * inv_z
-        J[:, 1, 2] = -self.fy * y * inv_z**2
-        return uv, J
+        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, True)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit directions (N, 3) in the camera frame of the rays through pixels (N, 2)."""
@@ -111,18 +104,15 @@ class Camera:
         )
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
+    @property
+    def fov_radius(self) -> float:
+        """The circular field of view's radius in pixels (inf: none)."""
+        return math.inf if self.fov_radius_px is None else float(self.fov_radius_px)
+
     def in_field(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Boolean mask of pixels inside the image and its circular field of view."""
-        inside = (
-            (uv[:, 0] >= margin_px)
-            & (uv[:, 1] >= margin_px)
-            & (uv[:, 0] <= self.width - 1 - margin_px)
-            & (uv[:, 1] <= self.height - 1 - margin_px)
-        )
-        if self.fov_radius_px is not None:
-            centre = np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
-            inside &= row_norms(uv - centre) <= self.fov_radius_px - margin_px
-        return inside
+        return in_field(np.asarray(uv, float).reshape(-1, 2), self.width, self.height, float(margin_px),
+                        self.fov_radius)
 
     def to_json(self) -> dict:
         return {

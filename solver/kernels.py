@@ -10,7 +10,11 @@ points) is the same story: one pass instead of some twenty array passes, and so 
 rasterisation of a model's projected footprint (every few iterations of every silhouette
 term) and the search for each observed contour pixel's nearest outline point (every
 iteration of every silhouette term: building and querying a KD-tree for a thousand points
-cost more than the rest of the term).
+cost more than the rest of the term), and the bilinear lookup of an image's distance map
+(every iteration of every term on a view's contour: a few hundred points, where numpy's
+per-call overhead of some twenty array passes dominated), as it does in the camera's
+projection of a term's points (several times per iteration and term), the sampling of a
+traced outline, and the points' blocks of the normal equations and their sums by key.
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -20,7 +24,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["footprint_mask", "nearest_points", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks",
+           "scatter_add", "schur_complement", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -82,6 +87,177 @@ def schur_complement(H_xx: np.ndarray, g_x: np.ndarray, W: np.ndarray, pose_of: 
                         blocks[pa, pb, r, c] += (Y[a, r, 0] * W[x, b, c, 0] + Y[a, r, 1] * W[x, b, c, 1]
                                                  + Y[a, r, 2] * W[x, b, c, 2])
     return blocks, shift, V_inv
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _in_field(u: float, v: float, width: int, height: int, margin: float, radius: float) -> bool:
+    """Whether pixel (u, v) lies inside the image and its circular field of view of
+    ``radius`` (inf: none), ``margin`` pixels in from their edges."""
+    if not (u >= margin and v >= margin and u <= width - 1 - margin and v <= height - 1 - margin):
+        return False
+    du, dv = u - (width - 1) / 2.0, v - (height - 1) / 2.0
+    return np.sqrt(du * du + dv * dv) <= radius - margin
+
+
+@numba.njit(cache=True, nogil=True)
+def in_field(uv: np.ndarray, width: int, height: int, margin: float, radius: float) -> np.ndarray:
+    """Mask (N,) of the pixels ``uv`` (N, 2) inside the field of view (:func:`_in_field`)."""
+    inside = np.empty(uv.shape[0], np.bool_)
+    for p in range(uv.shape[0]):
+        inside[p] = _in_field(uv[p, 0], uv[p, 1], width, height, margin, radius)
+    return inside
+
+
+@numba.njit(cache=True, nogil=True)
+def outline_samples(uv_a: np.ndarray, uv_delta: np.ndarray, spacing: float, width: int, height: int,
+                    margin: float, radius: float, interior: np.ndarray, downscale: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Samples along projected edges from ``uv_a`` (E, 2) by ``uv_delta`` (E, 2), at the
+    centres of ``ceil(length / spacing)`` (at least one) equal sub-segments, kept when in
+    the field of view (:func:`_in_field`) and, when ``interior`` (h, w) is not empty, on a
+    zero pixel of that mask at 1/``downscale`` resolution. Each kept sample's edge and
+    fraction along it, in edge order."""
+    total = 0
+    counts = np.empty(uv_a.shape[0], np.int64)
+    for e in range(uv_a.shape[0]):
+        du, dv = uv_delta[e, 0], uv_delta[e, 1]
+        counts[e] = max(1, int(np.ceil(np.sqrt(du * du + dv * dv) / spacing)))
+        total += counts[e]
+    edge = np.empty(total, np.int64)
+    frac = np.empty(total)
+    h, w = interior.shape
+    kept = 0
+    for e in range(uv_a.shape[0]):
+        for place in range(counts[e]):
+            s = (place + 0.5) / counts[e]
+            u = uv_a[e, 0] + s * uv_delta[e, 0]
+            v = uv_a[e, 1] + s * uv_delta[e, 1]
+            if not _in_field(u, v, width, height, margin, radius):
+                continue
+            if h > 0:
+                iu = min(max(int(np.rint(u / downscale)), 0), w - 1)
+                iv = min(max(int(np.rint(v / downscale)), 0), h - 1)
+                if interior[iv, iu] != 0:
+                    continue
+            edge[kept], frac[kept] = e, s
+            kept += 1
+    return edge[:kept], frac[:kept]
+
+
+@numba.njit(cache=True, nogil=True)
+def pinhole(p_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, min_depth: float,
+            jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of camera-frame points (N, 3), their depth floored at ``min_depth``,
+    and when ``jacobian`` the projection's Jacobian (N, 2, 3) (else an empty (0, 2, 3))."""
+    n = p_cam.shape[0]
+    uv = np.empty((n, 2))
+    J = np.zeros((n if jacobian else 0, 2, 3))
+    for p in range(n):
+        x, y = p_cam[p, 0], p_cam[p, 1]
+        z = max(p_cam[p, 2], min_depth)
+        if jacobian:
+            inv_z = 1.0 / z
+            uv[p, 0] = fx * x * inv_z + cx
+            uv[p, 1] = fy * y * inv_z + cy
+            J[p, 0, 0] = fx * inv_z
+            J[p, 0, 2] = -fx * x * inv_z**2
+            J[p, 1, 1] = fy * inv_z
+            J[p, 1, 2] = -fy * y * inv_z**2
+        else:
+            uv[p, 0] = fx * x / z + cx
+            uv[p, 1] = fy * y / z + cy
+    return uv, J
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear(values: np.ndarray, origin: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear interpolation of the image ``values`` (h, w), whose pixel (0, 0) lies at
+    ``origin`` (u, v), at ``uv`` (N, 2), and the interpolant's gradient (N, 2) in d/du,
+    d/dv. Beyond the image the distance to it is added and its direction becomes the
+    gradient along the clamped axes (see ``DistanceMap.query``)."""
+    n = uv.shape[0]
+    h, w = values.shape
+    value = np.empty(n)
+    grad = np.empty((n, 2))
+    upper_u, upper_v = w - 1 - 1e-9, h - 1 - 1e-9
+    for p in range(n):
+        lu, lv = uv[p, 0] - origin[0], uv[p, 1] - origin[1]
+        u, v = min(max(lu, 0.0), upper_u), min(max(lv, 0.0), upper_v)
+        iu, iv = int(u), int(v)  # floor: both are >= 0
+        fu, fv = u - iu, v - iv
+        v00, v10 = float(values[iv, iu]), float(values[iv, iu + 1])
+        v01, v11 = float(values[iv + 1, iu]), float(values[iv + 1, iu + 1])
+        top = v00 * (1 - fu) + v10 * fu
+        bottom = v01 * (1 - fu) + v11 * fu
+        value[p] = top * (1 - fv) + bottom * fv
+        grad[p, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
+        grad[p, 1] = bottom - top
+        out_u, out_v = lu - u, lv - v
+        if out_u != 0.0 or out_v != 0.0:
+            dist_out = np.sqrt(out_u * out_u + out_v * out_v)
+            value[p] += dist_out
+            if out_u != 0.0:
+                grad[p, 0] = out_u / dist_out
+            if out_v != 0.0:
+                grad[p, 1] = out_v / dist_out
+    return value, grad
+
+
+@numba.njit(cache=True, nogil=True)
+def point_blocks(Jx: np.ndarray, w: np.ndarray, residuals: np.ndarray, x_idx: np.ndarray,
+                 H_xx: np.ndarray, g_x: np.ndarray) -> np.ndarray:
+    """One term's share of the points' normal equations, added in place: per residual row
+    ``n`` of point ``x_idx[n]``, ``w Jx^T Jx`` to ``H_xx`` (X, 3, 3) and ``w Jx^T r`` to
+    ``g_x`` (X, 3), for its point Jacobian ``Jx`` (N, m, 3), weight ``w`` (N,) and
+    residuals (N, m). Returns the weighted Jacobians ``w Jx`` (N, m, 3)."""
+    n_rows, m = Jx.shape[0], Jx.shape[1]
+    Jx_w = np.empty_like(Jx)
+    for n in range(n_rows):
+        x = x_idx[n]
+        for k in range(m):
+            for i in range(3):
+                Jx_w[n, k, i] = w[n] * Jx[n, k, i]
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(m):
+                    acc += Jx_w[n, k, i] * Jx[n, k, j]
+                H_xx[x, i, j] += acc
+            acc = 0.0
+            for k in range(m):
+                acc += Jx[n, k, i] * (w[n] * residuals[n, k])
+            g_x[x, i] += acc
+    return Jx_w
+
+
+@numba.njit(cache=True, nogil=True)
+def coupling_blocks(Ja: np.ndarray, Jx_w: np.ndarray) -> np.ndarray:
+    """Per residual row, ``Ja^T Jx_w`` (N, 6, 3) of a pose Jacobian ``Ja`` (N, m, 6) and the
+    weighted point Jacobian ``Jx_w`` (N, m, 3)."""
+    n_rows, m = Ja.shape[0], Ja.shape[1]
+    out = np.empty((n_rows, 6, 3))
+    for n in range(n_rows):
+        for i in range(6):
+            for j in range(3):
+                acc = 0.0
+                for k in range(m):
+                    acc += Ja[n, k, i] * Jx_w[n, k, j]
+                out[n, i, j] = acc
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def scatter_add(keys: np.ndarray, values: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of ``values`` (K, D) summed by their ``keys`` (K,) in 0..``n_keys`` - 1, in the
+    order given: the sums (n_keys, D) and which keys occurred (n_keys,)."""
+    sums = np.zeros((n_keys, values.shape[1]))
+    seen = np.zeros(n_keys, np.bool_)
+    for r in range(keys.shape[0]):
+        key = keys[r]
+        seen[key] = True
+        for d in range(values.shape[1]):
+            sums[key, d] += values[r, d]
+    return sums, seen
 
 
 @numba.njit(cache=True, nogil=True)
@@ -251,5 +427,15 @@ def warm_up() -> None:
                      np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
+    bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
+    in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
+    scatter_add(np.zeros(1, np.int64), np.zeros((1, 1)), 1)
+    Jx_w = point_blocks(np.zeros((1, 2, 3)), np.ones(1), np.zeros((1, 2)), np.zeros(1, np.int64),
+                        np.zeros((1, 3, 3)), np.zeros((1, 3)))
+    coupling_blocks(np.zeros((1, 2, 6)), Jx_w)
+    for mask in (np.zeros((0, 0), np.uint8), np.zeros((1, 1), np.uint8)):
+        outline_samples(np.zeros((1, 2)), np.ones((1, 2)), 1.0, 2, 2, 0.0, np.inf, mask, 4)
+    for jacobian in (False, True):
+        pinhole(np.ones((1, 3)), 1.0, 1.0, 0.0, 0.0, 1.0, jacobian)
     for gradient in (False, True):
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)

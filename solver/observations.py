@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from slamtka.solver.camera import Camera
-from slamtka.solver.geometry import row_norms
+from slamtka.solver.kernels import bilinear
 
 __all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation", "VisibleRegion"]
 
@@ -80,32 +80,7 @@ class DistanceMap:
         Beyond the window the distance keeps growing linearly so projections that fall
         outside are pulled back in.
         """
-        h, w = self.values.shape
-        local = uv - np.asarray(self.origin, float)
-        u = np.clip(local[:, 0], 0, w - 1 - 1e-9)
-        v = np.clip(local[:, 1], 0, h - 1 - 1e-9)
-        iu, iv = u.astype(np.int64), v.astype(np.int64)  # floor: both are >= 0
-        fu, fv = u - iu, v - iv
-        # The four neighbours by flat index (cheaper than paired fancy indexing).
-        flat = self.values.ravel()
-        at = iv * w + iu
-        v00, v10, v01, v11 = flat[at], flat[at + 1], flat[at + w], flat[at + w + 1]
-        top = v00 * (1 - fu) + v10 * fu
-        bottom = v01 * (1 - fu) + v11 * fu
-        value = top * (1 - fv) + bottom * fv
-        grad = np.empty((len(uv), 2))
-        grad[:, 0] = (v10 - v00) * (1 - fv) + (v11 - v01) * fv
-        grad[:, 1] = bottom - top
-        # Any projection beyond the window? (reductions instead of tests per point)
-        if local.min() < 0 or local[:, 0].max() > w - 1 - 1e-9 or local[:, 1].max() > h - 1 - 1e-9:
-            outside = local - np.column_stack([u, v])
-            clamped = outside != 0
-            far = np.any(clamped, axis=1)
-            dist_out = row_norms(outside)
-            grad[clamped] = 0.0
-            value = value + dist_out
-            grad[far] += outside[far] / dist_out[far, None]
-        return value, grad
+        return bilinear(self.values, np.asarray(self.origin, float), np.asarray(uv, float))
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import trimesh
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, box_corners, row_norms
-from slamtka.solver.kernels import footprint_mask
+from slamtka.solver.kernels import footprint_mask, outline_samples
 from slamtka.solver.sdf import UNREADABLE_CACHE, mesh_digest, write_arrays
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX", "simplified"]
@@ -32,12 +32,6 @@ _MASK_DOWNSCALE = 4
 # The interior mask is eroded by one mask pixel, so it stays valid while the model moves by
 # less than half of that in the image (see ContourGenerator.interior).
 INTERIOR_REUSE_PX = _MASK_DOWNSCALE / 2
-
-
-def _runs(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For consecutive runs of ``counts`` elements: each element's run and its place in it."""
-    owner = np.repeat(np.arange(len(counts)), counts)
-    return owner, np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def simplified(mesh: trimesh.Trimesh, max_faces: int, cache_dir: Path | None) -> trimesh.Trimesh:
@@ -178,21 +172,13 @@ class ContourGenerator:
             return np.zeros((0, 3))
         ends = self.vertices[edges]  # (E, 2, 3)
         uv_ends = camera.project(T_cam_model.apply(ends.reshape(-1, 3))).reshape(-1, 2, 2)
-        uv_a, uv_delta = uv_ends[:, 0], uv_ends[:, 1] - uv_ends[:, 0]
-        counts = np.maximum(1, np.ceil(row_norms(uv_delta) / spacing_px)).astype(int)
-        edge_index, place = _runs(counts)
-        # Sample at the centres of equal sub-segments, so shared end-points are not doubled.
-        s = (place + 0.5) / counts[edge_index]
-        uv = uv_a[edge_index] + s[:, None] * uv_delta[edge_index]
-
-        keep = camera.in_field(uv, fov_margin_px)
-        if outer_only and np.any(keep):
-            if interior is None:
-                interior = self.interior(T_cam_model, camera)
-            pix = np.clip(np.round(uv / _MASK_DOWNSCALE).astype(int), 0,
-                          np.array(interior.shape[::-1]) - 1)
-            keep &= interior[pix[:, 1], pix[:, 0]] == 0
-        # Most samples fall on interior folds: only the kept ones are carried to the model.
-        edge_index, s = edge_index[keep], s[keep]
+        # Sampled at the centres of equal sub-segments, so shared end-points are not doubled;
+        # most samples fall on interior folds: only the kept ones are carried to the model.
+        mask = np.zeros((0, 0), np.uint8)  # empty: no interior test
+        if outer_only:
+            mask = self.interior(T_cam_model, camera) if interior is None else interior
+        edge_index, s = outline_samples(
+            np.ascontiguousarray(uv_ends[:, 0]), uv_ends[:, 1] - uv_ends[:, 0], float(spacing_px),
+            camera.width, camera.height, float(fov_margin_px), camera.fov_radius, mask, _MASK_DOWNSCALE)
         a = ends[edge_index, 0]
         return a + s[:, None] * (ends[edge_index, 1] - a)

@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from slamtka.solver.kernels import nearest_points
+from slamtka.solver.kernels import (
+    bilinear,
+    coupling_blocks,
+    in_field,
+    nearest_points,
+    outline_samples,
+    point_blocks,
+    scatter_add,
+)
 
 
 @pytest.mark.parametrize("n_points", [1, 7, 900])
@@ -19,3 +27,69 @@ def test_nearest_points_is_the_exact_nearest_neighbour(n_points):
         found = nearest_points(points, queries, cell)
         np.testing.assert_allclose(np.linalg.norm(queries - points[found], axis=1), brute,
                                    rtol=0, atol=1e-9)
+
+
+def test_bilinear_is_exact_on_a_plane_and_grows_by_the_distance_beyond():
+    """An image of an affine function is interpolated exactly, gradient included; beyond
+    the image the value at the nearest border point grows by the distance to it, and the
+    clamped axes' gradient points away from the image."""
+    h, w, origin = 40, 60, np.array([100.0, 200.0])
+    vv, uu = np.mgrid[0:h, 0:w]
+    values = (0.3 * uu - 0.7 * vv + 5.0).astype(np.float32)
+    rng = np.random.default_rng(1)
+    inside = origin + rng.uniform(0.0, [w - 1, h - 1], (300, 2))
+    value, grad = bilinear(values, origin, inside)
+    local = inside - origin
+    np.testing.assert_allclose(value, 0.3 * local[:, 0] - 0.7 * local[:, 1] + 5.0, atol=1e-5)
+    np.testing.assert_allclose(grad, np.tile([0.3, -0.7], (300, 1)), atol=1e-5)
+    beyond = origin + np.array([[-3.0, 10.0], [w - 1 + 4.0, h - 1 + 3.0], [20.0, -2.0]])
+    value, grad = bilinear(values, origin, beyond)
+    border = np.array([[0.0, 10.0], [w - 1, h - 1], [20.0, 0.0]])
+    plane = 0.3 * border[:, 0] - 0.7 * border[:, 1] + 5.0
+    np.testing.assert_allclose(value, plane + [3.0, 5.0, 2.0], atol=1e-5)
+    np.testing.assert_allclose(grad, [[-1.0, -0.7], [0.8, 0.6], [0.3, -1.0]], atol=1e-5)
+
+
+def test_outline_samples_are_the_in_field_centres_of_equal_sub_segments():
+    """Each edge cut into ceil(length / spacing) equal parts, sampled at their centres, in
+    edge order; samples outside the (circular) field or on the interior mask are dropped."""
+    rng = np.random.default_rng(3)
+    uv_a = rng.uniform(-20.0, 120.0, (50, 2))
+    uv_delta = rng.normal(0.0, 8.0, (50, 2))
+    edge, frac = outline_samples(uv_a, uv_delta, 3.0, 100, 100, 2.0, 45.0, np.zeros((0, 0), np.uint8), 4)
+    counts = np.maximum(1, np.ceil(np.linalg.norm(uv_delta, axis=1) / 3.0)).astype(int)
+    every = [(e, (k + 0.5) / n) for e, n in enumerate(counts) for k in range(n)]
+    all_edge, all_frac = np.array(every).T
+    uv = uv_a[all_edge.astype(int)] + all_frac[:, None] * uv_delta[all_edge.astype(int)]
+    inside = in_field(uv, 100, 100, 2.0, 45.0)
+    assert inside.any() and not inside.all()
+    np.testing.assert_array_equal(edge, all_edge[inside])
+    np.testing.assert_array_equal(frac, all_frac[inside])
+    mask = np.zeros((25, 25), np.uint8)
+    mask[:, :12] = 1  # u < ~46 px is interior
+    edge, frac = outline_samples(uv_a, uv_delta, 3.0, 100, 100, 2.0, 45.0, mask, 4)
+    kept = uv_a[edge] + frac[:, None] * uv_delta[edge]
+    assert len(kept) and np.all(np.round(kept[:, 0] / 4) >= 12)
+
+
+def test_point_blocks_and_couplings_are_the_batched_products():
+    """The points' normal-equation blocks and their couplings to a pose equal numpy's
+    batched products; rows of one key are summed by the scatter-add."""
+    rng = np.random.default_rng(4)
+    n, m, X = 200, 2, 300
+    Jx, Ja = rng.normal(size=(n, m, 3)), rng.normal(size=(n, m, 6))
+    w, r = rng.uniform(0.1, 1.0, n), rng.normal(size=(n, m))
+    x_idx = rng.permutation(X)[:n]
+    H_xx, g_x = np.ones((X, 3, 3)), np.ones((X, 3))
+    Jx_w = point_blocks(Jx, w, r, x_idx, H_xx, g_x)
+    expected_H, expected_g = np.ones((X, 3, 3)), np.ones((X, 3))
+    expected_H[x_idx] += (w[:, None, None] * Jx).transpose(0, 2, 1) @ Jx
+    expected_g[x_idx] += np.einsum("nmi,nm->ni", Jx, w[:, None] * r)
+    np.testing.assert_allclose(H_xx, expected_H, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(g_x, expected_g, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(coupling_blocks(Ja, Jx_w), Ja.transpose(0, 2, 1) @ Jx_w, rtol=0, atol=1e-14)
+    keys = rng.integers(0, 7, 50)
+    values = rng.normal(size=(50, 4))
+    sums, seen = scatter_add(keys, values, 9)
+    np.testing.assert_allclose(sums, [values[keys == k].sum(axis=0) for k in range(9)], atol=1e-14)
+    np.testing.assert_array_equal(seen, [k in keys for k in range(9)])

@@ -705,11 +705,11 @@ def test_a_refusal_after_restarts_says_what_the_converged_attempt_found(phantom_
 
     def attempt(problem, initial, poses, callback, start):
         why, reason = next(attempts)
-        return slam._refused(problem, why, reason, None, None, {}, start, poses, went_astray=True)
+        return slam._refused(problem, why, reason, None, None, {}, start, poses, went_astray=True), None
 
     monkeypatch.setattr(slam, "_solve_from", attempt)
     monkeypatch.setattr(slam, "search_setup", lambda *args: Pose.identity())
-    outcome = slam._solve_restarting(problem, case.initial, None, 0.0)
+    outcome, _ = slam._solve_restarting(problem, case.initial, None, 0.0)
     assert outcome.why is Why.GATE_FAILED and outcome.reason.startswith("contours do not fit")
     assert next(attempts, None) is None  # every global search was tried
 
