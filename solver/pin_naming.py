@@ -43,6 +43,7 @@ class _Solved(Protocol):
 
     status: str
     reason: str
+    converged: bool
     term_costs: dict[str, float]
 
     @property
@@ -81,12 +82,22 @@ def naming_clear(chosen_mm: float, other_mm: float) -> bool:
 
 def settle_naming(first: Solved, second: Solved, views: list[str]) -> tuple[Solved, str | None]:
     """Of two solves under the two namings of ``views``, the one to report, and the refusal
-    when neither can be told right (None: the outcome returned stands as it is)."""
+    when neither can be told right (None: the outcome returned stands as it is).
+
+    A second naming that lost its way (did not converge) leaves the first standing; one
+    that converged and fits about as well or better but failed an answer gate does not:
+    the right naming may be the refused one (a simulated case was measured 4.1 deg off
+    under the wrong names while the right ones left the pins 3.2 deg from parallel)."""
+    cost_first, cost_second = sum(first.term_costs.values()), sum(second.term_costs.values())
     if second.status != "measured":
+        if second.converged and cost_second < cost_first + NAMING_MIN_COST_GAP:
+            return first, (f"the two pins cannot be told apart in view {', '.join(views)}: the "
+                           f"other naming fits as well (final cost {cost_second:.0f} against "
+                           f"{cost_first:.0f}) but is refused ({second.reason}); take a view "
+                           "from another angle")
         return first, None
     if first.status != "measured":
         return second, None
-    cost_first, cost_second = sum(first.term_costs.values()), sum(second.term_costs.values())
     better = first if cost_first <= cost_second else second
     if abs(cost_first - cost_second) >= NAMING_MIN_COST_GAP:
         return better, None

@@ -104,7 +104,7 @@ def solve_joint(
     not_usable = gates.input_refusal(input_diagnostics(problem, initial), config.gates)
     if not_usable is not None:
         return _refused(problem, *not_usable, None, None, {}, start, poses)
-    outcome, runner = _solve_restarting(problem, initial, callback, start)
+    outcome = _solve_restarting(problem, initial, callback, start)
     if outcome.status != "measured" or not outcome.unclear_naming:
         return outcome
     # The pins' names were left open by their sightings at the bone's poses. At the poses
@@ -118,11 +118,12 @@ def solve_joint(
                     naming_score(other_views, outcome.T_cam_tibia, length)):
         outcome.unclear_naming = []
         return outcome
-    # On from the first solve's bone stage (the bone's fit does not depend on the pins'
-    # names), and without the global searches: astray, this naming simply does not measure.
-    swapped = runner.with_pins_swapped(unclear)
-    other = _finished(JointProblem(plan, other_views, config, naming_fixed=True), swapped,
-                      swapped.resume(), start)
+    # From the views the first solve found, and without the global searches: astray, this
+    # naming simply does not measure. (Going on from the first solve's bone stage instead
+    # saves ~0.3 s, but measured a 20-run swapped-names study case 30 deg off: the right
+    # naming failed a pin gate from there.)
+    other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
+                           tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
     chosen, refusal = settle_naming(outcome, other, unclear)
     log.info("views %s: pin names open; swapped they %s (%s)", unclear,
              "fit better" if chosen is other else "fit no better", other.status)
@@ -137,14 +138,14 @@ def solve_joint(
 
 def _solve_restarting(problem: JointProblem, initial: InitialGuess,
                       callback: Callable[[str, IterationInfo], None] | None,
-                      start: float) -> tuple[SolveOutcome, StageRunner]:
+                      start: float) -> SolveOutcome:
     """A solve from the encoders' guess, restarted from the global set-up searches in turn
-    while it goes astray; also the runner of the solve returned. If none measures, the
+    while it goes astray. If none measures, the
     refusal is that of the first attempt that converged (its gates say what does not fit),
     else of the last: a restart that lost its way says less about the images than a solve
     that found the bone and failed a gate."""
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-    outcome, runner = best = _solve_from(problem, initial, poses, callback, start)
+    outcome = best = _solve_from(problem, initial, poses, callback, start)
     iterations = outcome.iterations
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
                 for T, view in zip(initial.T_cam_tibia, problem.views)]
@@ -154,13 +155,13 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
         correction = search_setup(problem.bone.coarse_contour, observed,
                                   problem.plan.landmarks.T_tibia_anat(), search)
         searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
-        outcome, runner = _solve_from(problem, initial, searched, callback, start)
+        outcome = _solve_from(problem, initial, searched, callback, start)
         outcome.initialisation = "global set-up search"
         iterations += outcome.iterations
-        if best[0].why is Why.NOT_CONVERGED:
-            best = outcome, runner
-    chosen = (outcome, runner) if outcome.status == "measured" else best
-    chosen[0].iterations = iterations
+        if best.why is Why.NOT_CONVERGED:
+            best = outcome
+    chosen = outcome if outcome.status == "measured" else best
+    chosen.iterations = iterations
     return chosen
 
 
@@ -181,9 +182,8 @@ def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,
 
 def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
                 callback: Callable[[str, IterationInfo], None] | None,
-                start: float) -> tuple[SolveOutcome, StageRunner]:
-    """One solve of the configured method from ``poses``, with its gates and uncertainty;
-    also its runner (to go on from its bone stage under other pin names)."""
+                start: float) -> SolveOutcome:
+    """One solve of the configured method from ``poses``, with its gates and uncertainty."""
     n = problem.n_views
     # Global step, shared by every method: where in each image is the bone? The views are
     # searched in parallel threads (OpenCV's template correlation releases the GIL), each
@@ -197,7 +197,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     with ThreadPoolExecutor(n) as pool:
         poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
     runner = StageRunner(problem, initial, callback)
-    return _finished(problem, runner, runner.run(State(poses, np.zeros((0, 3)))), start), runner
+    return _finished(problem, runner, runner.run(State(poses, np.zeros((0, 3)))), start)
 
 
 def _finished(problem: JointProblem, runner: StageRunner, result: StagesResult,

@@ -7,7 +7,6 @@ what is estimated when."""
 
 from __future__ import annotations
 
-import copy
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -27,7 +26,6 @@ from slamtka.solver.optimizer import (
     correspond,
     levenberg_marquardt,
 )
-from slamtka.solver.pin_naming import swap_pins
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.schedule import SCHEDULES, Held, Stage, Step
 
@@ -82,8 +80,6 @@ class StageRunner:
         self.iterations, self.seconds = 0, 0.0
         self.renamed: list[str] = []  # views whose pin names were swapped
         self.unclear_naming: list[str] = []  # views whose pin names the sightings leave open
-        # Where the bone stage left the solve: the index of the next stage and its result.
-        self._after_bone: tuple[int, StagesResult] | None = None
 
     def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
            name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
@@ -103,31 +99,12 @@ class StageRunner:
 
     def run(self, state: State) -> StagesResult:
         """Every stage of the method's table in order (:mod:`.schedule`)."""
-        return self._run_from(0, StagesResult(state, [], SolveReport(False, "not run", 0, 0.0, {}, 0.0, [])))
-
-    def with_pins_swapped(self, view_ids: list[str]) -> StageRunner:
-        """A runner for this solve with the pins' names swapped in ``view_ids`` and taken as
-        given, to go on from where this one left the bone stage (:meth:`resume`): the views'
-        fit to the bone, and the foreign edges it dropped, do not depend on the pins' names."""
-        p = self.problem
-        views = [swap_pins(v) if v.view_id in view_ids else v for v in p.views]
-        other = copy.copy(self)
-        other.problem = JointProblem(p.plan, views, p.config, naming_fixed=True)
-        other.iterations, other.seconds, other.renamed, other.unclear_naming = 0, 0.0, [], []
-        return other
-
-    def resume(self) -> StagesResult:
-        """The stages after the bone stage, from the state it reached."""
-        assert self._after_bone is not None, "the bone stage has not been run"
-        return self._run_from(*self._after_bone)
-
-    def _run_from(self, first: int, result: StagesResult) -> StagesResult:
-        for index, stage in enumerate(self.schedule.stages[first:], first):
+        result = StagesResult(state, [], SolveReport(False, "not run", 0, 0.0, {}, 0.0, []))
+        for stage in self.schedule.stages:
             if stage.step is Step.BONE_SILHOUETTE:
                 result, stopped = self._bone(stage, result)
                 if stopped:
                     return result
-                self._after_bone = index + 1, result
             elif stage.step is Step.TRIANGULATE_PINS:
                 n = self.problem.n_views
                 pins = self.problem.triangulated_pins(result.state.poses)

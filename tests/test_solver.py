@@ -659,14 +659,22 @@ def test_pin_names_swapped_in_one_view_are_put_right(phantom_plan, seed):
 
 def test_two_namings_that_fit_alike_but_disagree_are_refused():
     class Solved:
-        def __init__(self, cost: float, angles: tuple[float, float] | None):
+        def __init__(self, cost: float, angles: tuple[float, float] | None, converged: bool = True):
             self.status = "measured" if angles else "not_measured"
-            self.reason, self.term_costs, self.angles_deg = "", {"E_rp": cost}, angles
+            self.reason = "" if angles else "the pins are 3.2 deg from parallel"
+            self.term_costs, self.angles_deg, self.converged = {"E_rp": cost}, angles, converged
 
     right, wrong = Solved(1000.0, (1.0, 5.0)), Solved(1300.0, (-6.0, 6.0))
     assert settle_naming(right, wrong, ["view2"]) == (right, None)
     assert settle_naming(wrong, right, ["view2"]) == (right, None)
-    assert settle_naming(wrong, Solved(900.0, None), ["view2"]) == (wrong, None)
+    # The other naming lost its way: the first stands. It converged, fitting better or as
+    # well, but failed a gate: the first may be the wrong one (a case measured 4.1 deg off).
+    assert settle_naming(wrong, Solved(900.0, None, converged=False), ["view2"]) == (wrong, None)
+    assert settle_naming(right, Solved(1300.0, None), ["view2"]) == (right, None)
+    chosen, refusal = settle_naming(wrong, Solved(1200.0, None), ["view2"])
+    assert chosen is wrong and refusal is not None and refusal.startswith(
+        "the two pins cannot be told apart in view view2: the other naming fits as well "
+        "(final cost 1200 against 1300) but is refused (the pins are 3.2 deg from parallel)")
     alike = Solved(1010.0, (1.3, 5.2))
     assert settle_naming(right, alike, ["view2"]) == (right, None)  # the same plane either way
     close = Solved(1010.0, (-6.0, 6.0))
@@ -705,11 +713,11 @@ def test_a_refusal_after_restarts_says_what_the_converged_attempt_found(phantom_
 
     def attempt(problem, initial, poses, callback, start):
         why, reason = next(attempts)
-        return slam._refused(problem, why, reason, None, None, {}, start, poses, went_astray=True), None
+        return slam._refused(problem, why, reason, None, None, {}, start, poses, went_astray=True)
 
     monkeypatch.setattr(slam, "_solve_from", attempt)
     monkeypatch.setattr(slam, "search_setup", lambda *args: Pose.identity())
-    outcome, _ = slam._solve_restarting(problem, case.initial, None, 0.0)
+    outcome = slam._solve_restarting(problem, case.initial, None, 0.0)
     assert outcome.why is Why.GATE_FAILED and outcome.reason.startswith("contours do not fit")
     assert next(attempts, None) is None  # every global search was tried
 
