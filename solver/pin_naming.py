@@ -31,10 +31,11 @@ _SWAP_GAIN = 0.5
 _SWAP_MIN_MM = 1.0
 # Of two solves under both namings (the same residuals, as many parameters), one whose final
 # cost (sum of whitened squares) is lower by this much wins: a likelihood ratio of e^12.5.
-# Wrong namings cost 110-1,300 more than the right one on 80 simulated cases, never less
-# (docs/solver.md, "Pin naming"). Closer than that, both must give the same plane within
-# the tolerance, else there is no answer.
-NAMING_MIN_COST_GAP = 25.0
+# Wrong namings cost 110-1,300 more than the right one on 80 simulated cases (docs/solver.md,
+# "Pin naming"), but one headed-pin case of the 30-case realism study 94 less: its headless
+# pin model fits the heads worse under the right names. Closer than this, both namings must
+# give the same plane within the tolerance, else there is no answer.
+NAMING_MIN_COST_GAP = 100.0
 NAMING_PLANE_TOLERANCE_DEG = 0.5
 
 
