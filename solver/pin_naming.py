@@ -36,6 +36,9 @@ _SWAP_MIN_MM = 1.0
 # pin model fits the heads worse under the right names. Closer than this, both namings must
 # give the same plane within the tolerance, else there is no answer.
 NAMING_MIN_COST_GAP = 100.0
+# gates.Why.GATE_FAILED (the contours do not fit, the pins are not parallel): the kind of
+# refusal of another naming that does not let the first stand (gates imports this module).
+_ANSWER_GATE_FAILED = "gate_failed"
 NAMING_PLANE_TOLERANCE_DEG = 0.5
 
 
@@ -44,8 +47,10 @@ class _Solved(Protocol):
 
     status: str
     reason: str
-    converged: bool
     term_costs: dict[str, float]
+
+    @property
+    def why(self) -> str | None: ...  # a refusal's kind (gates.Why, a str)
 
     @property
     def angles_deg(self) -> tuple[float, float] | None: ...
@@ -81,17 +86,21 @@ def naming_clear(chosen_mm: float, other_mm: float) -> bool:
     return swap_pays(other_mm, chosen_mm)
 
 
-def settle_naming(first: Solved, second: Solved, views: list[str]) -> tuple[Solved, str | None]:
+def settle_naming(first: Solved, second: Solved, views: list[str],
+                  sightings_prefer_second: bool | None = None) -> tuple[Solved, str | None]:
     """Of two solves under the two namings of ``views``, the one to report, and the refusal
-    when neither can be told right (None: the outcome returned stands as it is).
+    when neither can be told right (None: the outcome returned stands as it is). A naming
+    that fits clearly better wins only if the pins' sightings (at the first solve's poses,
+    ``sightings_prefer_second``) do not favour the other: on extracted contours the fit
+    alone chose wrong names (two realism cases measured 17 and 25 deg off).
 
-    A second naming that lost its way (did not converge) leaves the first standing; one
-    that converged and fits about as well or better but failed an answer gate does not:
+    A second naming that lost its way, or whose geometry is degenerate, leaves the first
+    standing; one that fits about as well or better but failed an answer gate does not:
     the right naming may be the refused one (a simulated case was measured 4.1 deg off
     under the wrong names while the right ones left the pins 3.2 deg from parallel)."""
     cost_first, cost_second = sum(first.term_costs.values()), sum(second.term_costs.values())
     if second.status != "measured":
-        if second.converged and cost_second < cost_first + NAMING_MIN_COST_GAP:
+        if second.why == _ANSWER_GATE_FAILED and cost_second < cost_first + NAMING_MIN_COST_GAP:
             return first, (f"the two pins cannot be told apart in view {', '.join(views)}: the "
                            f"other naming fits as well (final cost {cost_second:.0f} against "
                            f"{cost_first:.0f}) but is refused ({second.reason}); take a view "
@@ -101,7 +110,12 @@ def settle_naming(first: Solved, second: Solved, views: list[str]) -> tuple[Solv
         return second, None
     better = first if cost_first <= cost_second else second
     if abs(cost_first - cost_second) >= NAMING_MIN_COST_GAP:
-        return better, None
+        if sightings_prefer_second is None or sightings_prefer_second == (better is second):
+            return better, None
+        return better, (f"the two pins cannot be told apart in view {', '.join(views)}: the "
+                        f"fit (final cost {cost_first:.0f} against {cost_second:.0f}) and "
+                        "where the pins' sightings meet disagree about their names; take a "
+                        "view from another angle")
     a, b = first.angles_deg, second.angles_deg
     assert a is not None and b is not None  # both measured
     apart = np.abs(np.subtract(a, b))

@@ -114,8 +114,9 @@ def solve_joint(
     named = [swap_pins(v) if v.view_id in outcome.renamed else v for v in views]
     other_views = [swap_pins(v) if v.view_id in unclear else v for v in named]
     length = plan.pin_length()
-    if naming_clear(naming_score(named, outcome.T_cam_tibia, length),
-                    naming_score(other_views, outcome.T_cam_tibia, length)):
+    named_mm = naming_score(named, outcome.T_cam_tibia, length)
+    other_mm = naming_score(other_views, outcome.T_cam_tibia, length)
+    if naming_clear(named_mm, other_mm):
         outcome.unclear_naming = []
         return outcome
     # From the views the first solve found, and without the global searches: astray, this
@@ -123,8 +124,8 @@ def solve_joint(
     # saves ~0.3 s, but measured a 20-run swapped-names study case 30 deg off: the right
     # naming failed a pin gate from there.)
     other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
-                           tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
-    chosen, refusal = settle_naming(outcome, other, unclear)
+                        tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
+    chosen, refusal = settle_naming(outcome, other, unclear, sightings_prefer_second=other_mm < named_mm)
     log.info("views %s: pin names open; swapped they %s (%s)", unclear,
              "fit better" if chosen is other else "fit no better", other.status)
     if chosen is other:  # its names, as against the views given

@@ -659,17 +659,19 @@ def test_pin_names_swapped_in_one_view_are_put_right(phantom_plan, seed):
 
 def test_two_namings_that_fit_alike_but_disagree_are_refused():
     class Solved:
-        def __init__(self, cost: float, angles: tuple[float, float] | None, converged: bool = True):
+        def __init__(self, cost: float, angles: tuple[float, float] | None, why: Why | None = None):
             self.status = "measured" if angles else "not_measured"
             self.reason = "" if angles else "the pins are 3.2 deg from parallel"
-            self.term_costs, self.angles_deg, self.converged = {"E_rp": cost}, angles, converged
+            self.term_costs, self.angles_deg = {"E_rp": cost}, angles
+            self.why = why if angles or why else Why.GATE_FAILED
 
     right, wrong = Solved(1000.0, (1.0, 5.0)), Solved(1300.0, (-6.0, 6.0))
     assert settle_naming(right, wrong, ["view2"]) == (right, None)
     assert settle_naming(wrong, right, ["view2"]) == (right, None)
     # The other naming lost its way: the first stands. It converged, fitting better or as
     # well, but failed a gate: the first may be the wrong one (a case measured 4.1 deg off).
-    assert settle_naming(wrong, Solved(900.0, None, converged=False), ["view2"]) == (wrong, None)
+    assert settle_naming(wrong, Solved(900.0, None, Why.NOT_CONVERGED), ["view2"]) == (wrong, None)
+    assert settle_naming(wrong, Solved(900.0, None, Why.DEGENERATE), ["view2"]) == (wrong, None)
     assert settle_naming(right, Solved(1300.0, None), ["view2"]) == (right, None)
     chosen, refusal = settle_naming(wrong, Solved(1200.0, None), ["view2"])
     assert chosen is wrong and refusal is not None and refusal.startswith(
@@ -678,6 +680,10 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
     alike = Solved(1010.0, (1.3, 5.2))
     assert settle_naming(right, alike, ["view2"]) == (right, None)  # the same plane either way
     close = Solved(1010.0, (-6.0, 6.0))
+    # The fit and the pins' sightings disagree about the names: no answer.
+    chosen, refusal = settle_naming(wrong, right, ["view2"], sightings_prefer_second=False)
+    assert refusal is not None and "the pins' sightings meet disagree" in refusal
+    assert settle_naming(wrong, right, ["view2"], sightings_prefer_second=True) == (right, None)
     chosen, refusal = settle_naming(right, close, ["view2"])
     assert refusal == ("the two pins cannot be told apart in view view2: both namings fit (final cost "
                        "1000 against 1010) and give planes 7.0 deg apart in CTR and 1.0 deg in STR; "
