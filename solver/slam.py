@@ -42,7 +42,7 @@ from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.schedule import METHODS
 from slamtka.solver.setup_search import search_setup
 from slamtka.solver.solver_config import SolverConfig
-from slamtka.solver.stages import StageRunner, StagesResult
+from slamtka.solver.stages import StageRunner
 from slamtka.solver.uncertainty import angle_uncertainty
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
@@ -141,10 +141,9 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
                       callback: Callable[[str, IterationInfo], None] | None,
                       start: float) -> SolveOutcome:
     """A solve from the encoders' guess, restarted from the global set-up searches in turn
-    while it goes astray. If none measures, the
-    refusal is that of the first attempt that converged (its gates say what does not fit),
-    else of the last: a restart that lost its way says less about the images than a solve
-    that found the bone and failed a gate."""
+    while it goes astray. If none measures, the refusal is that of the first attempt that
+    converged (its gates say what does not fit), else of the last: a restart that lost its
+    way says less about the images than a solve that found the bone and failed a gate."""
     poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
     outcome = best = _solve_from(problem, initial, poses, callback, start)
     iterations = outcome.iterations
@@ -198,13 +197,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
     with ThreadPoolExecutor(n) as pool:
         poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
     runner = StageRunner(problem, initial, callback)
-    return _finished(problem, runner, runner.run(State(poses, np.zeros((0, 3)))), start)
-
-
-def _finished(problem: JointProblem, runner: StageRunner, result: StagesResult,
-              start: float) -> SolveOutcome:
-    """The outcome of the stages ``runner`` ran on ``problem`` (as offered, before the bone
-    stage dropped foreign edges)."""
+    result = runner.run(State(poses, np.zeros((0, 3))))
     fine = result.report
     report = SolveReport(fine.converged, fine.reason, runner.iterations, fine.cost,
                          fine.term_costs, runner.seconds, fine.history)
