@@ -176,8 +176,10 @@ class Pipeline:
         uid = view.sop_instance_uid
         if uid not in self._extracted:
             try:
+                centres, width = plan.pin_shadows(self.calibration.camera, T_cam_tibia, pins)
                 found = extract_contours(frame.pixels,
-                                         expected_pins=self._expected_pins(plan, T_cam_tibia, pins))
+                                         expected_pins=self.calibration.distort_points(centres),
+                                         expected_pin_width_px=width)
                 self._extracted[uid] = (found, "extracted")
             except ContourError as exc:
                 self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")
@@ -233,13 +235,6 @@ class Pipeline:
         if self._pins is None or self._pins[0] is not plan:
             self._pins = (plan, planned_pins(plan))
         return self._pins[1]
-
-    def _expected_pins(self, plan: Plan, T_cam_tibia: Pose, pins: tuple[Pose, Pose]) -> np.ndarray:
-        """Raw pixel positions of the planned pins' centres in one view (pin labelling)."""
-        half = 0.5 * plan.pin_length()
-        centres = np.array([T.apply(np.array([0.0, 0.0, half])) for T in pins])
-        ideal = self.calibration.camera.project(T_cam_tibia.apply(centres))
-        return self.calibration.distort_points(ideal)
 
     # -- the run --------------------------------------------------------------------------
     def run(self, case: Case, views: list[View],

@@ -20,6 +20,7 @@ import json
 import math
 import numbers
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import cast
@@ -28,6 +29,8 @@ import numpy as np
 import trimesh
 
 from slamtka.solver.anatomy import Landmarks
+from slamtka.solver.camera import Camera
+from slamtka.solver.geometry import Pose
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.meshes import load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
@@ -185,6 +188,22 @@ class Plan:
     def pin_length(self) -> float:
         """Extent of the pin along its axis (pin frame +z), mm."""
         return float(self.pin_mesh.bounds[1, 2] - self.pin_mesh.bounds[0, 2])
+
+    def pin_diameter(self) -> float:
+        """The pin's shaft diameter, mm (of a custom mesh: its typical distance from the axis)."""
+        if self.pin_spec is not None:
+            return self.pin_spec.diameter_mm
+        radial = np.hypot(self.pin_mesh.vertices[:, 0], self.pin_mesh.vertices[:, 1])
+        return 2.0 * float(np.percentile(radial, 75))
+
+    def pin_shadows(self, camera: Camera, T_cam_tibia: Pose, T_tibia_pins: Sequence[Pose]
+                    ) -> tuple[np.ndarray, float]:
+        """Where the pins at ``T_tibia_pins`` show in a view: their centres' ideal
+        (undistorted) pixels (2, 2) and the width of a pin's shadow there, px."""
+        half = np.array([[0.0, 0.0, 0.5 * self.pin_length()]])
+        centres = np.array([(T_cam_tibia @ T).apply(half)[0] for T in T_tibia_pins])
+        width = camera.fx * self.pin_diameter() / float(np.mean(centres[:, 2]))
+        return camera.project(centres), width
 
     # -- persistence ---------------------------------------------------------------------
     def save(self, folder: Path) -> None:

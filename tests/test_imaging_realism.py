@@ -35,9 +35,13 @@ def clean_frames(radiographs):
     return [r.image for r in radiographs[1]]
 
 
-def _room_frames(plan, scene, room: OperatingRoom, seed: int):
+def _room_case(plan, room: OperatingRoom, seed: int):
     draw = room.draw(seed)
-    case = simulate_case(plan, SimulationConfig(seed=seed, view_angles_deg=view_angles(draw, (-30.0, 30.0))))
+    return draw, simulate_case(plan, SimulationConfig(seed=seed, view_angles_deg=view_angles(draw, (-30.0, 30.0))))
+
+
+def _room_frames(plan, scene, room: OperatingRoom, seed: int):
+    draw, case = _room_case(plan, room, seed)
     rng = np.random.default_rng(seed)
     bodies = room_bodies(plan, draw)
     scene = room_scene(scene, draw)
@@ -229,3 +233,43 @@ def test_a_dark_band_beside_a_pin_is_not_taken_for_its_edge(phantom_plan, scene)
         points = getattr(found, label)
         assert len(points) > 100
         assert np.max(cKDTree(radiograph.silhouettes[label]).query(points)[0]) < 10.0
+
+
+def _labelled(radiograph, found) -> bool:
+    """Each pin's edge points lie on its own true outline, nearer it than the other's."""
+    truth = radiograph.silhouettes
+    for own, other in (("pin1", "pin2"), ("pin2", "pin1")):
+        points = getattr(found, own)
+        if len(points) < 20:
+            return False
+        d_own, d_other = (float(np.median(cKDTree(truth[k]).query(points)[0])) for k in (own, other))
+        if not (d_own < 2.0 and d_own < d_other):
+            return False
+    return True
+
+
+@pytest.mark.parametrize("seed, view", [(1, 0), (2, 0), (3, 0), (4, 1)])
+def test_pins_crossed_or_flanked_by_retractor_blades_are_found(phantom_plan, scene, seed, view):
+    """Retractor blades seen edge-on are as straight as a pin. Seeds 1-3, view 1: a pin
+    crosses one (one cross-shaped shadow, no pin-shaped candidate: the pins were lost, or
+    blades taken for them); seed 3 and seed 4 view 2: a strip of a face-on blade, or two
+    edge-on blades, were taken for the pins. With the plan's pin width at the pose, the
+    shadow is cut into its straight bars and the pins are told from the blades."""
+    room = OperatingRoom.only("retractors")
+    frame = _room_frames(phantom_plan, scene, room, seed)[1][view]
+    cam, d = frame.radiograph.camera, frame.radiograph.distortion
+    _, truth = _room_case(phantom_plan, room, seed)
+    centres, width = phantom_plan.pin_shadows(cam, truth.truth_T_cam_tibia[view], truth.truth_T_tibia_pin)
+    found = extract_contours(frame.radiograph.image, expected_pins=d.distort(centres),
+                             expected_pin_width_px=width)
+    assert _labelled(frame.radiograph, found)
+
+
+def test_the_field_is_found_when_blades_as_dark_as_no_signal_reach_its_rim(phantom_plan, scene):
+    """Seed 1, view 2: two retractor blades run from the field's rim into it, as dark as
+    the intensifier's no-signal surround. Their outlines made a third of the dark region's
+    boundary: the circle fell below its inlier share, the frame was read as a flat panel of
+    the wrong polarity and no pin was found."""
+    _, frames = _room_frames(phantom_plan, scene, OperatingRoom.only("retractors"), 1)
+    centre, radius, _, sign = field_of_view(frames[1].radiograph.image, "auto")
+    assert radius == pytest.approx(512.0, abs=2.0) and sign == 1

@@ -83,13 +83,11 @@ def _room(scene: str, data: Path) -> OperatingRoom:
     return OperatingRoom.only(scene, meshes)
 
 
-def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> np.ndarray:
-    """Pin centres projected at the initial poses (what the service labels pins by)."""
-    camera = frame.radiograph.camera
-    half = np.array([0.0, 0.0, 0.5 * plan.pin_length()])
-    centres = np.array([T.apply(half[None])[0] for T in case.initial.T_tibia_pin])
-    ideal = camera.project(case.initial.T_cam_tibia[k].apply(centres))
-    return frame.radiograph.distortion.distort(ideal)
+def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> tuple[np.ndarray, float]:
+    """Pin centres and shadow width at the initial poses (what the service labels pins by)."""
+    centres, width = plan.pin_shadows(frame.radiograph.camera, case.initial.T_cam_tibia[k],
+                                      case.initial.T_tibia_pin)
+    return frame.radiograph.distortion.distort(centres), width
 
 
 def _scores(frame: RoomFrame, found: ExtractedContours) -> dict:
@@ -149,10 +147,11 @@ def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
     for level, case in cases.items():
         views, refusal = [], None
         for k, frame in enumerate(frames):
+            centres, width = _expected_pins(case, k, frame, plan)
             start = time.perf_counter()
             try:
-                found = extract_contours(frame.radiograph.image,
-                                         expected_pins=_expected_pins(case, k, frame, plan))
+                found = extract_contours(frame.radiograph.image, expected_pins=centres,
+                                         expected_pin_width_px=width)
             except ContourError as exc:
                 refusal = refusal or f"view {k + 1}: {exc}"
                 found = None

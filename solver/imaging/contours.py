@@ -7,11 +7,15 @@ Pipeline (all tuning in :class:`ContourConfig`):
    the polarity (attenuating objects dark or bright) follows from which side is brighter.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
-3. Pins: ``A`` minus a 100-px median background, seeded above ``pin_threshold`` and grown
-   to half each shadow's peak; only bars of a pin's width and shape are kept. Seen
-   nearly along the resection plane the two parallel pins often overlap, staggered along
-   their common axis; steel saturates, so one shadow is split into two bars where its long
-   sides step from one pin's edge to the other's (``pin_min_step_px``).
+3. Pins: ``A`` minus what it shows without anything as narrow as a pin (an opening by a
+   disk wider than one), over the whole field, broad metal included: a pin crossing a
+   retractor blade shows over it as over tissue. Seeded above ``pin_threshold`` and grown
+   to half each shadow's peak; only bars of a pin's width and shape are kept (the plan's
+   pin projected at the initial pose says which width), and a shadow holding straight
+   bars of different directions (a pin across a blade seen edge-on) is cut into them.
+   Seen nearly along the resection plane the two parallel pins often overlap, staggered
+   along their common axis; steel saturates, so one shadow is split into two bars where
+   its long sides step from one pin's edge to the other's (``pin_min_step_px``).
 4. Bone: ``A`` minus a soft-tissue background (a low-order polynomial fitted by asymmetric
    least squares, so that it hugs the tissue under the bone) above ``bone_threshold``; the
    boundary of that mask, with its holes, is the coarse outer outline of tibia with fibula.
@@ -80,7 +84,7 @@ class ContourConfig:
     min_edge_strength: float = 0.015  # attenuation drop per pixel at an accepted edge
     bone_edge_offset_px: float = 0.0  # outward shift of bone edges (blur bias of a site)
     bone_reach_in_px: float = 2.0  # further inward search: a gentle edge leaves the mask outside it
-    # Attenuation over its 100-px median background that seeds a steel shadow (grown to
+    # Attenuation over its pin-free background that seeds a steel shadow (grown to
     # half its peak); scatter brings steel down to ~0.6, bone's tangent cortex reaches ~0.9.
     pin_threshold: float = 0.5
     # Attenuation over the field's median above which a region wider than two pins is
@@ -364,21 +368,22 @@ def _robust_width(bar: _Bar, points: np.ndarray) -> float:
     return 4.0 * float(np.median(np.abs(across)))
 
 
-def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], expected: np.ndarray | None = None
-                   ) -> tuple[int, int] | None:
+def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
+                   expected: np.ndarray | None = None) -> tuple[int, int] | None:
     """The two shadows most alike in direction and width (the block's parallel pins), or
     None when no two are alike enough to be the pins. With ``expected`` pin centres (the
     initial pose's projection), a pair far from them costs more: a retractor blade seen
     edge-on is as straight as a pin, but not where the plan puts the pins."""
     best, best_cost = None, np.inf
-    widths = [_robust_width(bar, points) for bar, points in fitted]
+    widths_px = [_robust_width(bar, points) for bar, points in fitted]
     where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
             angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
-            ratio = max(widths[i], widths[j]) / max(min(widths[i], widths[j]), 1e-9)
-            if angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO:
+            ratio = max(widths_px[i], widths_px[j]) / max(min(widths_px[i], widths_px[j]), 1e-9)
+            if (angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO
+                    or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
             cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
             if where is not None:
@@ -427,36 +432,167 @@ _PIN_GROW_TO = 0.8  # excess to which an unscattered steel shadow is grown
 _PIN_PEAK_SHARE = 0.5  # of the strongest bar's peak excess, that another bar must reach
 
 
-def _pin_like(labels: np.ndarray, count: int, config: ContourConfig) -> np.ndarray:
+# With the plan's pin projected at the initial pose, a shadow's width is known to about
+# 10% (the pose's depth error): a pin's is within these shares of it, two pins side by
+# side at most the last. A retractor blade seen edge-on (2 mm) or a strip of a face-on
+# blade is as straight as a pin but rarely as wide.
+_EXPECTED_WIDTH_SHARES = (0.65, 1.35, 2.1)
+
+
+@dataclass(frozen=True)
+class _PinWidths:
+    """Widths (px) of a pin's shadow: one pin's least and most, and two side by side's most."""
+
+    least: float
+    most: float
+    union_most: float
+
+    @staticmethod
+    def of(config: ContourConfig, expected_px: float | None) -> _PinWidths:
+        if expected_px is None:
+            lo, hi = config.pin_width_px
+            return _PinWidths(lo, hi, _PIN_UNION_WIDTH * hi)
+        return _PinWidths(*(share * expected_px for share in _EXPECTED_WIDTH_SHARES))
+
+    def one_pin(self, width: float) -> bool:
+        return self.least <= width <= self.most
+
+
+def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
+    """Whether ``pixels`` (N, 2) are shaped like a pin's shadow (or two pins' overlap)."""
+    if len(pixels) < config.pin_min_area_px:
+        return False
+    bar = _fit_bar(pixels)
+    # Across a filled bar offsets are uniform: four times their median is its width,
+    # whatever a head on its end adds.
+    width, length = _robust_width(bar, pixels), 2.0 * bar.half_length
+    return (widths.least <= width <= widths.union_most and length >= _PIN_ELONGATION * width
+            and len(pixels) >= _PIN_FILL * width * length)
+
+
+def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: ContourConfig
+              ) -> np.ndarray:
     """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
     ys, xs = np.nonzero(labels)
     order = np.argsort(labels[ys, xs], kind="stable")
-    ys, xs = ys[order], xs[order]
-    bounds = np.searchsorted(labels[ys, xs], np.arange(count + 1))
+    pixels = np.column_stack([xs[order], ys[order]]).astype(float)
+    bounds = np.searchsorted(labels[ys[order], xs[order]], np.arange(count + 1))
     ok = np.zeros(count, bool)
-    lo, hi = config.pin_width_px
     for label in range(1, count):
-        a, b = bounds[label], bounds[label + 1]
-        if b - a < config.pin_min_area_px:
-            continue
-        bar = _fit_bar(np.column_stack([xs[a:b], ys[a:b]]).astype(float))
-        # Across a filled bar offsets are uniform: four times their median is its width,
-        # whatever a head on its end adds.
-        across = (np.column_stack([xs[a:b], ys[a:b]]) - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
-        width, length = 4.0 * float(np.median(np.abs(across))), 2.0 * bar.half_length
-        ok[label] = (lo <= width <= _PIN_UNION_WIDTH * hi and length >= _PIN_ELONGATION * width
-                     and (b - a) >= _PIN_FILL * width * length)
+        ok[label] = _bar_shaped(pixels[bounds[label]:bounds[label + 1]], widths, config)
     return ok
 
 
-def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
-          expected: np.ndarray | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
+_LINE_ANGLES_DEG = np.arange(0.0, 180.0, 10.0)
+_CROSSED_PIECES = 4  # straight bars taken out of one crossed shadow at most
+_PIECE_OVERLAP = 0.3  # share of a piece that may lie in a piece already taken
+
+
+def _line(length: int, angle_deg: float) -> np.ndarray:
+    """A one-pixel line of ``length`` (odd) at ``angle_deg``: a structuring element."""
+    kernel = np.zeros((length, length), np.uint8)
+    c = (length - 1) / 2.0
+    t = np.linspace(-c, c, 2 * length)
+    a = np.radians(angle_deg)
+    kernel[np.round(c + t * np.sin(a)).astype(int), np.round(c + t * np.cos(a)).astype(int)] = 1
+    return kernel
+
+
+def _straight_pieces(shadow: np.ndarray, widths: _PinWidths, config: ContourConfig
+                     ) -> list[np.ndarray]:
+    """Pin-shaped straight bars inside a steel shadow that is not one bar (a pin crossed or
+    touched by a retractor blade seen edge-on, both pins across one blade), as pixel masks
+    of ``shadow``'s shape: what survives an opening by a line longer than any crossing
+    bar is wide, in the direction of the bar, taken greedily from the largest."""
+    half = cv2.resize(shadow.astype(np.uint8), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_NEAREST)
+    length = int(config.pin_width_px[1]) | 1  # twice the widest pin, at half size
+    pieces: list[np.ndarray] = []
+    for angle in _LINE_ANGLES_DEG:
+        opened = cv2.morphologyEx(half, cv2.MORPH_OPEN, _line(length, angle))
+        count, labels = cv2.connectedComponents(opened, connectivity=8)
+        pieces += [labels == k for k in range(1, count)]
+    pieces.sort(key=lambda m: -int(m.sum()))
+    taken: list[np.ndarray] = []
+    found: list[np.ndarray] = []
+    for piece in pieces:
+        if len(found) == _CROSSED_PIECES:
+            break
+        if any((piece & other).sum() > _PIECE_OVERLAP * piece.sum() for other in taken):
+            continue
+        full = shadow & (cv2.resize(piece.astype(np.uint8), shadow.shape[::-1],
+                                    interpolation=cv2.INTER_NEAREST) > 0)
+        ys, xs = np.nonzero(full)
+        if _bar_shaped(np.column_stack([xs, ys]).astype(float), widths, config):
+            taken.append(piece)
+            found.append(full)
+    return found
+
+
+def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widths: _PinWidths,
+                   config: ContourConfig) -> tuple[int, np.ndarray]:
+    """Relabel, in place, the straight pin-shaped pieces of each shadow that is not one bar
+    as shadows of their own; returns the new count of labels and which are pin-like.
+
+    A shadow with two such pieces is split even if it passed as pin-like: a short pin
+    across a long blade seen edge-on is still much longer than wide."""
+    count = len(good)
+    good = good.copy()
+    added: list[bool] = []
+    for label in range(1, count):
+        x, y, w, h, area = stats[label]
+        if area < 2 * config.pin_min_area_px:
+            continue
+        window = labels[y:y + h, x:x + w]
+        pieces = _straight_pieces(window == label, widths, config)
+        if len(pieces) < (1 if not good[label] else 2):
+            continue
+        good[label] = False
+        for piece in pieces:
+            window[piece] = count + len(added)
+            added.append(True)
+    return count + len(added), np.concatenate([good, np.asarray(added, bool)])
+
+
+def _below_pins(A: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """What the frame would show without its pins: ``A`` opened (half size) by a disk wider
+    than two pins side by side. Narrow shadows (pins, a blade seen edge-on) go; a broad
+    one stays, so a pin crossing a retractor blade stands out over the blade as over
+    tissue, and the blade's own edges, steps rather than ridges, are no pin's."""
+    half = cv2.resize(A, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    half = cv2.GaussianBlur(half, (0, 0), 1.0)
+    size = int(config.pin_width_px[1] / 2) | 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    opened = cv2.morphologyEx(half, cv2.MORPH_OPEN, disk)
+    return np.minimum(cv2.resize(opened, A.shape[::-1], interpolation=cv2.INTER_LINEAR), A)
+
+
+_SPLIT_TRIED = 3  # largest shadows tried, in turn, as the one holding both pins
+
+
+def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
+               widths: _PinWidths, config: ContourConfig
+               ) -> tuple[list[_Bar], str, np.ndarray] | None:
+    """When no two shadows are the pins, the one that holds both: of the largest, the first
+    that splits into two bars each of one pin's width (a strip of a retractor blade does
+    not), with its bars, how they overlap and its edge points; None if none does."""
+    h, w = labels.shape
+    at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
+    for shadow in shadows[:_SPLIT_TRIED]:
+        own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        mine = own[at[:, 1], at[:, 0]]
+        if np.count_nonzero(mine) < _MIN_PIN_EDGES:
+            continue
+        bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
+        if all(widths.one_pin(2.0 * bar.half_width) for bar in bars):
+            return bars, overlap, edges[mine]
+    return None
+
+
+def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig, expected: np.ndarray | None,
+          expected_width_px: float | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
-    small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
-    lo, hi = np.percentile(small, [0.5, 99.5])
-    quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
-    background = cv2.medianBlur(quantised, 25).astype(np.float32) / 255 * (hi - lo) + lo
-    background = cv2.resize(background, A.shape[::-1], interpolation=cv2.INTER_LINEAR)
+    widths = _PinWidths.of(config, expected_width_px)
+    background = _below_pins(A, config)
     excess = np.where(valid, A - background, 0.0).astype(np.float32)
     # Scatter adds to what passes steel and bone alike, so steel's excess over its
     # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
@@ -467,11 +603,9 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     np.maximum.at(peak, seeds[strong], excess[strong])
     reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))
     weak = (excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)
-    count, labels = cv2.connectedComponents(weak.astype(np.uint8), connectivity=8)
-    sizes = np.bincount(labels.ravel(), minlength=count)
-    good = sizes >= config.pin_min_area_px
-    good[0] = False
-    good &= _pin_like(labels, count, config)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(weak.astype(np.uint8), connectivity=8)
+    good = _pin_like(labels, count, widths, config)
+    count, good = _split_crossed(labels, stats, good, widths, config)
     # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
     tops = np.zeros(count, np.float32)
     np.maximum.at(tops, labels[weak], excess[weak])
@@ -496,19 +630,15 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig,
     pixels = np.column_stack([xs, ys]).astype(float)
     shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
     fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
-    pair = _parallel_pair(fitted, expected)
+    pair = _parallel_pair(fitted, widths, expected)
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
-        # One shadow holds both pins (or the others are no pin's twin): split the largest.
-        own = cv2.dilate((labels == shadows[0]).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
-        at = np.clip(np.round(edges).astype(int), 0, [A.shape[1] - 1, A.shape[0] - 1])
-        mine = own[at[:, 1], at[:, 0]]
-        edges, normals = edges[mine], normals[mine]
-        if len(edges) < _MIN_PIN_EDGES:
+        split = _split_one(labels, shadows, edges, normals, widths, config)
+        if split is None:
             empty = np.zeros((0, 2))
             return [empty, empty], mask, {"pins_found": 0}
-        bars, overlap = _split_union(edges, normals, config.pin_min_step_px)
+        bars, overlap, edges = split
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
     if overlap == "apart":
@@ -688,16 +818,21 @@ UNFORESEEN_PREFIX = "contour extraction failed unexpectedly"
 
 
 def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig(),
-                     expected_pins: np.ndarray | None = None) -> ExtractedContours:
+                     expected_pins: np.ndarray | None = None,
+                     expected_pin_width_px: float | None = None) -> ExtractedContours:
     """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
 
     ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
     initial pose) that decide the labels instead of ``config.pin_order`` where they are
-    clear, and favour the pin pair near them. Whatever the
-    frame, the only error raised is :class:`ContourError`, with the reason.
+    clear, and favour the pin pair near them. ``expected_pin_width_px``: optional width of
+    a pin's shadow there (the plan's pin diameter projected), which tells pins from other
+    straight metal of another width. Whatever the frame, the only error raised is
+    :class:`ContourError`, with the reason.
     """
+    if expected_pin_width_px is not None and not expected_pin_width_px > 0:
+        raise ValueError(f"expected_pin_width_px must be positive, got {expected_pin_width_px}")
     try:
-        return _extract(pixels, config, expected_pins)
+        return _extract(pixels, config, expected_pins, expected_pin_width_px)
     except ContourError:
         raise
     except FieldError as exc:
@@ -706,8 +841,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
         raise ContourError(f"{UNFORESEEN_PREFIX} ({type(exc).__name__}: {exc})") from exc
 
 
-def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None
-             ) -> ExtractedContours:
+def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None,
+             expected_pin_width_px: float | None) -> ExtractedContours:
     start = time.perf_counter()
     image = np.asarray(pixels)
     if image.ndim != 2 or min(image.shape) < 64:
@@ -737,9 +872,12 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     halo = _PROCESSED_RIM_HALO_PX if linearised is not None and radius is not None else 0.0
     valid &= r < (radius if radius is not None else np.inf) - halo
     broad = _broad_opaque(A, valid, config)
+    field = valid.copy()
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
+    # A pin is sought over broad metal too (a blade is no pin but a pin may cross it).
+    A_field = np.where(field, A, fill).astype(np.float32)
     A = np.where(valid, A, fill).astype(np.float32)
     smoothing = _smoothing_for_noise(A, valid, config)
     smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
@@ -749,18 +887,19 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     air = valid & (coarse < np.percentile(coarse[::2, ::2][valid[::2, ::2]], 0.5) + config.air_margin)
     to_air = _distance_to(air)
 
-    (pin1, pin2), pins, pin_info = _pins(A, valid, config, expected_pins)
+    (pin1, pin2), pins, pin_info = _pins(A_field, field, config, expected_pins, expected_pin_width_px)
     bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
     margin = config.fov_margin_px
     rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+    pin_rim_ok = rim_ok.copy()
     rim_ok &= _distance_to(broad) > margin
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
     bone = _keep(bone, bone_visible & (to_air > 3.0))
-    pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
+    pin1, pin2 = _keep(pin1, pin_rim_ok), _keep(pin2, pin_rim_ok)
     missing = {label: _why_missing(k, expected_pins, broad)
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}

@@ -29,10 +29,11 @@ class FieldError(ValueError):
 
 def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
     """Circle through most of the points (RANSAC over triplets), refined by least squares,
-    and the share of the points on it.
+    and the share of the points on it, of those not inside it.
 
-    Objects crossing the rim of the field (a pin sticking out) dent its boundary, so the
-    consensus circle, not a plain fit, is the field.
+    Objects crossing the rim of the field (a pin sticking out, retractor blades as dark as
+    no signal) dent its boundary inwards, so the consensus circle, not a plain fit, is the
+    field, and what they add inside it does not count against it.
     """
     triplets = points[rng.integers(0, len(points), (300, 3))]
     a, b, c = triplets[:, 0], triplets[:, 1], triplets[:, 2]
@@ -50,18 +51,20 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     sample = points[:: max(1, len(points) // 400)]
     residual = np.abs(np.linalg.norm(sample[None] - centres[:, None], axis=2) - radii[:, None])
     best = int(np.argmax((residual < 1.5).sum(axis=1)))
-    keep = np.abs(np.linalg.norm(points - centres[best], axis=1) - radii[best]) < 1.5
+    off = np.linalg.norm(points - centres[best], axis=1) - radii[best]
+    keep = np.abs(off) < 1.5
+    share = float(keep.sum() / max(np.count_nonzero(off > -1.5), 1))
     p = points[keep]
     if len(p) < 3:
-        return centres[best], float(radii[best]), float(np.mean(keep))
+        return centres[best], float(radii[best]), share
     M = np.column_stack([2 * p, np.ones(len(p))])
     sol = np.linalg.lstsq(M, (p**2).sum(axis=1), rcond=None)[0]
     r2 = sol[2] + sol[:2] @ sol[:2]
-    return sol[:2], float(np.sqrt(max(r2, 0.0))), float(np.mean(keep))
+    return sol[:2], float(np.sqrt(max(r2, 0.0))), share
 
 
-# A circle is the intensifier's field only if this share of the flat region's boundary lies
-# on it (steel crossing the rim takes a share of the boundary), its radius is this share of the frame's shorter side to its diagonal, and its
+# A circle is the intensifier's field only if this share of the flat region's boundary not
+# inside it lies on it, its radius is this share of the frame's shorter side to its diagonal, and its
 # boundary points span this arc about its centre (a straight skin line fits a huge circle).
 _CIRCLE_INLIERS = 0.35
 _CIRCLE_RADIUS = (0.25, 0.8)
