@@ -583,9 +583,18 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
-        if all(widths.one_pin(2.0 * bar.half_width) for bar in bars):
+        if all(widths.one_pin(_edge_width(bar, edges[mine])) for bar in bars):
             return bars, overlap, edges[mine]
     return None
+
+
+def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
+    """The width of ``bar`` from the edge points along its sides (a head on its end, wider,
+    holds few of them)."""
+    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    along = np.abs((edges - bar.centre) @ bar.direction)
+    sides = across[(along <= bar.half_length) & (across <= 2.0 * bar.half_width)]
+    return 2.0 * float(np.median(sides)) if len(sides) else 2.0 * bar.half_width
 
 
 def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig, expected: np.ndarray | None,
