@@ -124,7 +124,7 @@ def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
         label = term.body.label
         median_px = float(np.median(np.concatenate([outline, contour])))
         p90_px = float(np.percentile(outline, 90)) if term.body != BONE and len(outline) else None
-        fits.append(OutlineFit(problem.views[term.view.index].view_id, label, median_px, p90_px,
+        fits.append(OutlineFit(problem.views[term.view.position].view_id, label, median_px, p90_px,
                                term.visible_share()))
     return tuple(fits)
 
@@ -165,7 +165,7 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         for (k, label), pixels in problem.pixels.items()
         if seated and label == "bone" and len(pixels))
     grazes = tuple(
-        PinGraze(problem.views[t.view.index].view_id, t.body.label, t.graze_offset_rms_mm(state))
+        PinGraze(problem.views[t.view.position].view_id, t.body.label, t.graze_offset_rms_mm(state))
         for t in terms if isinstance(t, BackProjectionTerm) and t.body in problem.pin_keys
         and t.view is not None)
     axes = [state.poses[key].R[:, 2] for key in problem.pin_keys]

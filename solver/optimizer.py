@@ -1,12 +1,12 @@
 """A generic Levenberg-Marquardt optimiser over poses and 3D points (factor-graph style).
 
 Variables are rigid poses (6 degrees of freedom each, right increments, see ``geometry``),
-named by key (:mod:`.variables`), and 3D points (3 each). Energy terms are small objects that return whitened residuals and
-their Jacobians for the variables they touch (:class:`Linearization`); the optimiser knows
-nothing about tibias or pins. Each point touches few poses, so points are eliminated with
-the Schur complement and only a small dense system in the poses is solved: the cost of an
-iteration grows linearly with the number of points. Robust losses are applied by
-iteratively reweighted least squares.
+named by key (:mod:`.variables`), and 3D points (3 each). Energy terms are small objects
+that return whitened residuals and their Jacobians for the variables they touch
+(:class:`Linearization`); the optimiser knows nothing about tibias or pins. Each point
+touches few poses, so points are eliminated with the Schur complement and only a small
+dense system in the poses is solved: the cost of an iteration grows linearly with the
+number of points. Robust losses are applied by iteratively reweighted least squares.
 """
 
 from __future__ import annotations

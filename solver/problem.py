@@ -142,7 +142,7 @@ class JointProblem:
     def edge_point_counts(self, terms: list[Term]) -> dict[tuple[int, str], int]:
         """Contour points per view and label that kept an edge point in ``terms`` (those of
         the re-projection terms; empty for methods without edge points)."""
-        return {(t.view.index, t.body.label): len(t.pixels)
+        return {(t.view.position, t.body.label): len(t.pixels)
                 for t in terms if isinstance(t, ReprojectionTerm)}
 
     def model(self, label: str) -> RigidModel:

@@ -1,8 +1,8 @@
 """The joint solver: both C-arm views, both pins and every edge point at once.
 
 Problem layout (docs/solver.md, :mod:`.problem`): poses ``T_camk_tibia`` of each view and
-``T_tibia_pin`` of each pin, named by key (:mod:`.variables`), and one 3D point per kept contour pixel (bone points in the
-tibia frame, pin points in their pin's frame). A solve:
+``T_tibia_pin`` of each pin, named by key (:mod:`.variables`), and one 3D point per kept
+contour pixel (bone points in the tibia frame, pin points in their pin's frame). A solve:
 
 1. each view's bone found in its image by an exhaustive shift/rotation search;
 2. the configured method's stages (:mod:`.schedule`, run by :mod:`.stages`): for the
@@ -173,9 +173,10 @@ def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,
     """A "not_measured" outcome; ``poses`` stand in for the state when none was solved;
     ``went_astray`` says a restart from a global search may still measure."""
     final = state.poses if state is not None else poses or {}
+    views = [final[key] for key in problem.view_keys if key in final]
+    pins = [final[key] for key in problem.pin_keys if key in final]
     return SolveOutcome(
-        "not_measured", reason, state, [final[key] for key in problem.view_keys if key in final],
-        [final[key] for key in problem.pin_keys if key in final], None, None, rms, report.term_costs if report else {},
+        "not_measured", reason, state, views, pins, None, None, rms, report.term_costs if report else {},
         report.iterations if report else 0, time.perf_counter() - start,
         bool(report and report.converged), report.reason if report else "not run",
         problem.point_counts(), went_astray=went_astray, why=why)

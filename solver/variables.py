@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,22 +21,23 @@ __all__ = ["BONE", "Ordering", "PoseKey", "body_key", "pin_key", "view_key"]
 _RANK = {"view": 0, "pin": 1}
 
 
-@dataclass(frozen=True)
-class PoseKey:
-    """One rigid body's pose: ``kind`` "view" (``index``: the view's position), "pin" or
-    "bone" (``label``: the observation label of its contours)."""
+class PoseKey(NamedTuple):
+    """One rigid body's pose: ``kind`` "view" (``position``: its place among the problem's
+    views), "pin" or "bone" (``label``: the observation label of its contours). A tuple, so
+    that hashing and comparing keys (every term's pose look-ups, every iteration) cost no
+    Python calls."""
 
     kind: str
-    index: int = 0
+    position: int = 0
     label: str = ""
 
     def __str__(self) -> str:
-        return f"view{self.index}" if self.kind == "view" else self.label
+        return f"view{self.position}" if self.kind == "view" else self.label
 
 
 def view_key(k: int) -> PoseKey:
     """The camera pose ``T_cam_tibia`` of the ``k``-th view."""
-    return PoseKey("view", index=k)
+    return PoseKey("view", position=k)
 
 
 def pin_key(label: str) -> PoseKey:
@@ -70,7 +72,7 @@ class Ordering:
         keys = tuple(keys)
         if any(key.kind not in _RANK for key in keys):
             raise ValueError("only view and pin poses are variables (the bone is the reference)")
-        return cls(tuple(sorted(keys, key=lambda k: (_RANK[k.kind], k.index, k.label))))
+        return cls(tuple(sorted(keys, key=lambda k: (_RANK[k.kind], k.position, k.label))))
 
     def __len__(self) -> int:
         return len(self.keys)
