@@ -147,12 +147,13 @@ class CaseRecorder:
         self.rec.log("solver/lambda", rr.Scalars(info.lambda_))
         for term, cost in info.term_costs.items():
             self.rec.log(f"solver/terms/{term}", rr.Scalars(cost))
-        poses = info.state.poses
-        n_views = len(poses) - 2
-        for view_id, T in zip(self._view_ids, poses[:n_views]):
-            self.rec.log(f"world/solver/{view_id}", _transform(T.inverse()))
-        for k, T in enumerate(poses[n_views:], start=1):
-            self.rec.log(f"world/solver/pin{k}", _transform(T))
+        poses, keys = info.state.poses, info.state.ordering.keys
+        views = [key for key in keys if key.kind == "view"]
+        for view_id, key in zip(self._view_ids, views):
+            self.rec.log(f"world/solver/{view_id}", _transform(poses[key].inverse()))
+        for key in keys:
+            if key.kind == "pin":
+                self.rec.log(f"world/solver/{key.label}", _transform(poses[key]))
 
     # -- the result -----------------------------------------------------------------------
     def final(self, view_ids: list[str], T_cam_tibia: list[Pose], T_tibia_pin: list[Pose],

@@ -14,6 +14,7 @@ from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.terms import BackProjectionTerm
+from slamtka.solver.variables import BONE
 
 __all__ = ["InputDiagnostics", "OutlineFit", "PinGraze", "PinOverlap", "SolveDiagnostics",
            "StrayShare", "diagnose", "input_diagnostics", "outline_fits", "pin_overlaps",
@@ -95,7 +96,7 @@ def input_diagnostics(problem: JointProblem, initial: InitialGuess) -> InputDiag
         tuple(v.view_id for v in problem.views),
         {key: len(px) for key, px in problem.pixels.items()},
         tuple(dict(v.notes) for v in problem.views),
-        view_separation_deg(list(initial.T_cam_tibia)) if problem.n_views else 0.0)
+        view_separation_deg(list(initial.T_cam_tibia)) if problem.views else 0.0)
 
 
 def residual_rms(terms: list[Term], state: State) -> tuple[dict[str, float], int]:
@@ -120,10 +121,10 @@ def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
     fits = []
     for term in problem.silhouette_terms(labels, 1.0, RobustLoss("l2")):
         outline, contour = term.distances_px(state)
-        label = problem.label(term.body)
+        label = term.body.label
         median_px = float(np.median(np.concatenate([outline, contour])))
-        p90_px = float(np.percentile(outline, 90)) if term.body is not None and len(outline) else None
-        fits.append(OutlineFit(problem.views[term.view].view_id, label, median_px, p90_px,
+        p90_px = float(np.percentile(outline, 90)) if term.body != BONE and len(outline) else None
+        fits.append(OutlineFit(problem.views[term.view.position].view_id, label, median_px, p90_px,
                                term.visible_share()))
     return tuple(fits)
 
@@ -138,12 +139,13 @@ def _segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarra
 def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
     """How far the two pins' shadows lie on each other in each view at ``state``: seen one
     behind the other, a view cannot tell which contour belongs to which pin."""
-    plan, n = problem.plan, problem.n_views
+    plan = problem.plan
+    pins = [state.poses[key] for key in problem.pin_keys]
     radius = float(np.max(np.hypot(*np.asarray(plan.pin_mesh.vertices)[:, :2].T)))
     overlaps = []
-    for k, view in enumerate(problem.views):
-        in_camera = [state.poses[k].apply(pin_axis_points(T, plan.pin_length()))
-                     for T in state.poses[n:]]
+    for key, view in zip(problem.view_keys, problem.views):
+        in_camera = [state.poses[key].apply(pin_axis_points(T, plan.pin_length()))
+                     for T in pins]
         axes = [view.camera.project(p) for p in in_camera]
         # Axes closer than a radius (pixels, at the nearer pin's depth): the shadows lie
         # more than half on each other, and neither pin shows both of its edges.
@@ -163,15 +165,16 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         for (k, label), pixels in problem.pixels.items()
         if seated and label == "bone" and len(pixels))
     grazes = tuple(
-        PinGraze(problem.views[t.view].view_id, problem.label(t.body), t.graze_offset_rms_mm(state))
-        for t in terms if isinstance(t, BackProjectionTerm) and t.body is not None
+        PinGraze(problem.views[t.view.position].view_id, t.body.label, t.graze_offset_rms_mm(state))
+        for t in terms if isinstance(t, BackProjectionTerm) and t.body in problem.pin_keys
         and t.view is not None)
-    axes = [T.R[:, 2] for T in state.poses[problem.n_views:]]
+    axes = [state.poses[key].R[:, 2] for key in problem.pin_keys]
     divergence = float(np.degrees(np.arccos(np.clip(abs(axes[0] @ axes[1]), -1.0, 1.0))))
     return SolveDiagnostics(
         rms, n_residuals,
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
         strays, problem.config.sampling.max_ray_miss_mm, grazes,
         outline_fits(problem, state, LABELS), divergence,
-        view_separation_deg(list(state.poses[:problem.n_views])), pin_overlaps(problem, state))
+        view_separation_deg([state.poses[key] for key in problem.view_keys]),
+        pin_overlaps(problem, state))
 

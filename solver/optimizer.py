@@ -1,18 +1,18 @@
 """A generic Levenberg-Marquardt optimiser over poses and 3D points (factor-graph style).
 
-Variables are rigid poses (6 degrees of freedom each, right increments, see ``geometry``)
-and 3D points (3 each). Energy terms are small objects that return whitened residuals and
-their Jacobians for the variables they touch (:class:`Linearization`); the optimiser knows
-nothing about tibias or pins. Each point touches few poses, so points are eliminated with
-the Schur complement and only a small dense system in the poses is solved: the cost of an
-iteration grows linearly with the number of points. Robust losses are applied by
-iteratively reweighted least squares.
+Variables are rigid poses (6 degrees of freedom each, right increments, see ``geometry``),
+named by key (:mod:`.variables`), and 3D points (3 each). Energy terms are small objects
+that return whitened residuals and their Jacobians for the variables they touch
+(:class:`Linearization`); the optimiser knows nothing about tibias or pins. Each point
+touches few poses, so points are eliminated with the Schur complement and only a small
+dense system in the poses is solved: the cost of an iteration grows linearly with the
+number of points. Robust losses are applied by iteratively reweighted least squares.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Protocol, runtime_checkable
@@ -21,6 +21,7 @@ import numpy as np
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.kernels import coupling_blocks, point_blocks, scatter_add, schur_complement
+from slamtka.solver.variables import Ordering, PoseKey
 
 __all__ = [
     "SharedError",
@@ -49,14 +50,24 @@ _POSE_REGULARISATION = 1e-9
 
 @dataclass(frozen=True)
 class State:
-    """All variables: poses (list) and points (X, 3)."""
+    """All variables: the poses by key and the points (X, 3)."""
 
-    poses: tuple[Pose, ...]
+    poses: Mapping[PoseKey, Pose]
     points: np.ndarray
 
+    @cached_property
+    def ordering(self) -> Ordering:
+        """Where each pose's columns sit in the system (the same for the same keys)."""
+        return Ordering.of(self.poses)
+
     def retract(self, d_poses: np.ndarray, d_points: np.ndarray) -> State:
-        poses = tuple(p.retract(d) for p, d in zip(self.poses, d_poses.reshape(-1, 6)))
+        """The state moved by the increments of all poses (6P,) and points (X, 3)."""
+        poses = {key: self.poses[key].retract(d) for key, d in self.ordering.split(d_poses).items()}
         return State(poses, self.points + d_points)
+
+    def with_poses(self, poses: Mapping[PoseKey, Pose]) -> State:
+        """The state with ``poses`` replacing those of their keys."""
+        return State({**self.poses, **poses}, self.points)
 
 
 @dataclass(frozen=True)
@@ -96,12 +107,12 @@ class Linearization:
     term's own units as the term returns them, whitened once its :class:`NoiseModel` has
     been applied (:func:`whitened`).
 
-    ``pose_jacobians`` holds ``(pose index, (N, m, 6))`` for each pose the term touches;
+    ``pose_jacobians`` holds ``(pose key, (N, m, 6))`` for each pose the term touches;
     ``point_jacobian`` holds ``(point ids (N,), (N, m, 3))``, one distinct point per residual
     block."""
 
     residuals: np.ndarray
-    pose_jacobians: list[tuple[int, np.ndarray]] = field(default_factory=list)
+    pose_jacobians: list[tuple[PoseKey, np.ndarray]] = field(default_factory=list)
     point_jacobian: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -275,9 +286,9 @@ class NormalEquations:
 
 
 def build_normal_equations(
-    terms: list[Term], lins: list[Linearization], n_poses: int, n_points: int
+    terms: list[Term], lins: list[Linearization], ordering: Ordering, n_points: int
 ) -> NormalEquations:
-    P = n_poses
+    P = len(ordering)
     H_blocks = np.zeros((P, P, 6, 6))
     g_blocks = np.zeros((P, 6))
     H_xx = np.zeros((n_points, 3, 3))
@@ -288,8 +299,9 @@ def build_normal_equations(
         w = term.noise.weight * term.noise.loss.weight(s)  # (N,)
         wr = (w[:, None] * lin.residuals).reshape(-1)  # (N*m,)
         sqrt_w = np.sqrt(w)[:, None, None]
-        weighted = [(a, (sqrt_w * Ja).reshape(-1, 6)) for a, Ja in lin.pose_jacobians]
-        for a, Ja in lin.pose_jacobians:
+        blocks = [(ordering.index(key), Ja) for key, Ja in lin.pose_jacobians]
+        weighted = [(a, (sqrt_w * Ja).reshape(-1, 6)) for a, Ja in blocks]
+        for a, Ja in blocks:
             g_blocks[a] += Ja.reshape(-1, 6).T @ wr
         for a, Ja_w in weighted:
             for b, Jb_w in weighted:
@@ -299,7 +311,7 @@ def build_normal_equations(
             x_idx, Jx = lin.point_jacobian
             Jx_w = point_blocks(np.ascontiguousarray(Jx, float), w, np.ascontiguousarray(lin.residuals, float),
                                 np.asarray(x_idx, np.int64), H_xx, g_x)
-            for a, Ja in lin.pose_jacobians:
+            for a, Ja in blocks:
                 coupling_keys.append(x_idx * P + a)
                 coupling_vals.append(coupling_blocks(np.ascontiguousarray(Ja, float), Jx_w))
     if coupling_keys:
@@ -352,24 +364,29 @@ def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float)
     return d_p, d_x
 
 
+def _free(ordering: Ordering, fixed_dofs: Mapping[PoseKey, np.ndarray] | None) -> np.ndarray:
+    """(6P,) mask of the pose parameters that may move."""
+    return ~ordering.mask(fixed_dofs or {})
+
+
 def levenberg_marquardt(
     terms: list[Term],
     state: State,
-    fixed_dofs: np.ndarray | None = None,
+    fixed_dofs: Mapping[PoseKey, np.ndarray] | None = None,
     options: LMOptions = LMOptions(),
     callback: Callable[[IterationInfo], str | None] | None = None,
 ) -> tuple[State, SolveReport]:
     """Minimise the robust energy of ``terms`` from ``state``.
 
-    ``fixed_dofs`` is a boolean mask over the 6P pose parameters that must not move (gauge
+    ``fixed_dofs`` masks, per pose key, the six parameters that must not move (gauge
     directions such as a pin's roll about its own axis). ``callback`` sees every accepted
     step; when it returns a reason (a string) the caller has what it needs (say, the
     quantity it measures has settled) and the solve ends there as converged, for that
     reason, as a Ceres iteration callback may end a solve successfully.
     """
     start = time.perf_counter()
-    P, X = len(state.poses), len(state.points)
-    free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    P, X = len(state.ordering), len(state.points)
+    free = _free(state.ordering, fixed_dofs)
     corresponding = _corresponding(terms)
     _correspond(corresponding, state)
     lins, costs = _evaluate(terms, state, jacobians=True)
@@ -378,7 +395,7 @@ def levenberg_marquardt(
     lam = options.initial_lambda
     converged, reason, iteration = False, "maximum iterations reached", 0
     for iteration in range(1, options.max_iterations + 1):
-        ne = build_normal_equations(terms, lins, P, X)
+        ne = build_normal_equations(terms, lins, state.ordering, X)
         accepted = False
         while lam <= options.max_lambda:
             d_p, d_x = _solve_step(ne, P, free, lam)
@@ -427,11 +444,12 @@ class SharedError:
 
 
 def pose_covariance(
-    terms: list[Term], state: State, fixed_dofs: np.ndarray | None = None,
+    terms: list[Term], state: State, fixed_dofs: Mapping[PoseKey, np.ndarray] | None = None,
     shared: SharedError | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Marginal covariance (6P, 6P) of the poses at ``state`` (points marginalised) from
-    independent residual noise, and the part ``shared`` adds (zero without it).
+    """Marginal covariance (6P, 6P) of the poses at ``state`` (points marginalised; columns
+    in ``state.ordering``, :meth:`~slamtka.solver.variables.Ordering.marginal` picks poses
+    by key) from independent residual noise, and the part ``shared`` adds (zero without it).
 
     The Schur complement of the Gauss-Newton information is exactly the marginal
     information of the poses; fixed (gauge) directions get zero variance. Residuals are
@@ -440,12 +458,12 @@ def pose_covariance(
     ``A e = S^-1 (sum over coupled poses of H_px V^-1 b) e``; its covariance is
     ``A C A^T``.
     """
-    P, X = len(state.poses), len(state.points)
+    P, X = len(state.ordering), len(state.points)
     correspond(terms, state)
     lins, _ = _evaluate(terms, state, jacobians=True)
-    ne = build_normal_equations(terms, lins, P, X)
+    ne = build_normal_equations(terms, lins, state.ordering, X)
     S, _, V_inv = _reduced_system(ne, P, 0.0)
-    free = np.ones(6 * P, bool) if fixed_dofs is None else ~np.asarray(fixed_dofs, bool)
+    free = _free(state.ordering, fixed_dofs)
     cov = np.zeros((6 * P, 6 * P))
     cov[np.ix_(free, free)] = np.linalg.pinv(S[np.ix_(free, free)], hermitian=True)
     if shared is None:

@@ -3,6 +3,7 @@ contour pixels, and the energy terms built from them (docs/solver.md)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -16,10 +17,17 @@ from slamtka.solver.pin_naming import naming_clear, naming_score, swap_pays, swa
 from slamtka.solver.plan import Plan, RigidModel
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.solver_config import SolverConfig
-from slamtka.solver.terms import BackProjectionTerm, ModelProjectionTerm, RelativePoseTerm, ReprojectionTerm
+from slamtka.solver.terms import (
+    BackProjectionTerm,
+    ModelProjectionTerm,
+    RelativePoseTerm,
+    ReprojectionTerm,
+    pose_in_view,
+)
 from slamtka.solver.triangulation import PinSighting, triangulate_pin
+from slamtka.solver.variables import PoseKey, body_key, pin_key, view_key
 
-__all__ = ["EdgeGroup", "InitialGuess", "JointProblem", "thin_contour"]
+__all__ = ["EdgeGroup", "InitialGuess", "JointProblem", "named_poses", "thin_contour"]
 
 # Edge points' robust loss (in sigmas): a stray point pulls with a constant force.
 _EDGE_LOSS = RobustLoss("huber", 2.0)
@@ -38,6 +46,11 @@ class InitialGuess:
     T_tibia_pin: tuple[Pose, Pose]
     odometry_sigma: tuple[float, float] | None = None
 
+
+def named_poses(T_cam_tibia: Sequence[Pose], T_tibia_pin: Sequence[Pose]) -> dict[PoseKey, Pose]:
+    """The views' poses (in view order) and the pins' (in ``PIN_LABELS`` order) by key."""
+    return ({view_key(k): T for k, T in enumerate(T_cam_tibia)}
+            | {pin_key(label): T for label, T in zip(PIN_LABELS, T_tibia_pin)})
 
 
 def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
@@ -69,14 +82,16 @@ class JointProblem:
         self.naming_fixed = naming_fixed
         self.bone = plan.bone_model()
         self.pin = plan.pin_model()
-        self.n_views = len(views)
+        # The pose variables: each view's camera, then each pin (the bone is the reference).
+        self.view_keys = tuple(view_key(k) for k in range(len(views)))
+        self.pin_keys = tuple(pin_key(label) for label in PIN_LABELS)
         self.pixels = {(k, label): thin_contour(v.contours[label], config.sampling.edge_spacing_px)
                        for k, v in enumerate(views) for label in LABELS}
         # ... and more sparsely for the coarse silhouette stages (SamplingConfig.coarse_thinning).
         self.coarse_pixels = {key: thin_contour(px, config.sampling.edge_spacing_px * config.sampling.coarse_thinning)
                               for key, px in self.pixels.items()}
 
-    def attributed(self, poses: tuple[Pose, ...], labels: tuple[str, ...]) -> JointProblem:
+    def attributed(self, poses: Mapping[PoseKey, Pose], labels: tuple[str, ...]) -> JointProblem:
         """The problem without the contour pixels of ``labels`` that no part of their
         models' outlines, traced at ``poses``, comes near (``SamplingConfig.foreign_edge_px``):
         the edges of a femur, a patella, a retractor or a collimator blade that extraction
@@ -95,7 +110,7 @@ class JointProblem:
             kept = {}
             for label in labels:
                 pixels, uv = view.contours[label], outlines[label]
-                if self.body_index(label) is None and view.bone_visible is not None:
+                if label == "bone" and view.bone_visible is not None:
                     uv = uv[view.bone_visible.contains(uv)]
                 if len(pixels) == 0 or len(uv) == 0 or float(np.median(
                         view.distance_map(label).query(uv)[0])) > c.gates.max_coarse_bone_median_px:
@@ -109,12 +124,11 @@ class JointProblem:
             return self
         return JointProblem(self.plan, views, c, self.naming_fixed)
 
-    def _outline_px(self, k: int, label: str, poses: tuple[Pose, ...]) -> np.ndarray:
+    def _outline_px(self, k: int, label: str, poses: Mapping[PoseKey, Pose]) -> np.ndarray:
         """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
-        view, body = self.views[k], self.body_index(label)
-        T = poses[k] if body is None else poses[k] @ poses[body]
+        view, T = self.views[k], self.T_cam_body(poses, k, label)
         outline = self.model(label).contour.outline_points(
-            T, view.camera, self.config.sampling.silhouette_spacing_px, outer_only=body is None)
+            T, view.camera, self.config.sampling.silhouette_spacing_px, outer_only=label == "bone")
         return view.camera.project(T.apply(outline)) if len(outline) else np.zeros((0, 2))
 
     def point_counts(self) -> dict[str, int]:
@@ -128,42 +142,32 @@ class JointProblem:
     def edge_point_counts(self, terms: list[Term]) -> dict[tuple[int, str], int]:
         """Contour points per view and label that kept an edge point in ``terms`` (those of
         the re-projection terms; empty for methods without edge points)."""
-        return {(t.view, self.label(t.body)): len(t.pixels)
+        return {(t.view.position, t.body.label): len(t.pixels)
                 for t in terms if isinstance(t, ReprojectionTerm)}
-
-    def body_index(self, label: str) -> int | None:
-        return None if label == "bone" else self.n_views + PIN_LABELS.index(label)
-
-    def label(self, body: int | None) -> str:
-        """The label of the body at pose index ``body`` (the inverse of :meth:`body_index`)."""
-        return "bone" if body is None else PIN_LABELS[body - self.n_views]
 
     def model(self, label: str) -> RigidModel:
         return self.bone if label == "bone" else self.pin
 
-    def fixed_dofs(self, views: bool = False, pins: bool = False) -> np.ndarray:
-        """Mask of parameters held fixed: always each pin's roll about its own axis (a gauge
-        direction), and optionally all view or all pin parameters (staged solves)."""
-        fixed = np.zeros((self.n_views + 2, 6), bool)
-        fixed[: self.n_views] = views
-        fixed[self.n_views:] = pins
-        fixed[self.n_views:, 5] = True
-        return fixed.reshape(-1)
+    def fixed_dofs(self, views: bool = False, pins: bool = False) -> dict[PoseKey, np.ndarray]:
+        """Per pose, the parameters held fixed: always each pin's roll about its own axis (a
+        gauge direction), and optionally all view or all pin parameters (staged solves)."""
+        return ({key: np.full(6, views) for key in self.view_keys}
+                | {key: np.array([pins] * 5 + [True]) for key in self.pin_keys})
 
-    def T_cam_body(self, poses: tuple[Pose, ...], k: int, label: str) -> Pose:
-        body = self.body_index(label)
-        return poses[k] if body is None else poses[k] @ poses[body]
+    def T_cam_body(self, poses: Mapping[PoseKey, Pose], k: int, label: str) -> Pose:
+        """The pose of ``label``'s model in view ``k``'s camera."""
+        return pose_in_view(poses, view_key(k), body_key(label))
 
-    def relabelled(self, poses: tuple[Pose, ...]) -> tuple[JointProblem, list[str], list[str]]:
+    def relabelled(self, poses: Mapping[PoseKey, Pose]) -> tuple[JointProblem, list[str], list[str]]:
         """The problem with the two pins' names swapped in each view where the swap makes
         both pins' sightings meet clearly better (views posed from the bone alone; names
         from extraction's guess; :mod:`solver.pin_naming`). Also the ids of the views
         swapped, and of those whose naming is not clear either way."""
         if self.naming_fixed:
             return self, [], []
-        length, view_poses = self.plan.pin_length(), poses[: self.n_views]
+        length, view_poses = self.plan.pin_length(), [poses[key] for key in self.view_keys]
         views, swapped, unclear = list(self.views), list[str](), list[str]()
-        for k in range(1, self.n_views):
+        for k in range(1, len(views)):
             trial = views[:k] + [swap_pins(views[k])] + views[k + 1:]
             kept, changed = naming_score(views, view_poses, length), naming_score(trial, view_poses, length)
             if swap_pays(kept, changed):
@@ -173,18 +177,18 @@ class JointProblem:
         problem = JointProblem(self.plan, views, self.config) if swapped else self
         return problem, swapped, unclear
 
-    def triangulated_pins(self, poses: tuple[Pose, ...]) -> tuple[Pose, ...]:
+    def triangulated_pins(self, poses: Mapping[PoseKey, Pose]) -> dict[PoseKey, Pose]:
         """Each pin's pose triangulated from its contours in the views at ``poses`` (the
         current pin pose where it cannot be)."""
-        pins = []
-        for i, label in enumerate(PIN_LABELS):
-            current = poses[self.n_views + i]
-            sightings = [PinSighting(view.camera, poses[k], self.pixels[k, label])
+        pins = {}
+        for key in self.pin_keys:
+            current = poses[key]
+            sightings = [PinSighting(view.camera, poses[view_key(k)], self.pixels[k, key.label])
                          for k, view in enumerate(self.views)]
-            pins.append(triangulate_pin(sightings, current, self.plan.pin_length()) or current)
-        return tuple(pins)
+            pins[key] = triangulate_pin(sightings, current, self.plan.pin_length()) or current
+        return pins
 
-    def seated_points(self, poses: tuple[Pose, ...], labels: tuple[str, ...] = LABELS
+    def seated_points(self, poses: Mapping[PoseKey, Pose], labels: tuple[str, ...] = LABELS
                       ) -> tuple[np.ndarray, dict[tuple[int, str], EdgeGroup]]:
         """Edge points of ``labels`` seated on their rays for ``poses``, and per view and
         label the group of points kept: for the bone, those whose rays pass within
@@ -224,7 +228,7 @@ class JointProblem:
                 if len(view.contours[label]) == 0:
                     continue
                 terms.append(ModelProjectionTerm(
-                    "E_mp", k, self.body_index(label), view.camera,
+                    "E_mp", view_key(k), body_key(label), view.camera,
                     (self.bone.coarse_contour if light and label == "bone"
                      else self.model(label).contour),
                     view.distance_map(label),
@@ -244,7 +248,7 @@ class JointProblem:
         anchor = self.plan.landmarks.T_tibia_anat()
         first = initial.T_cam_tibia[0]
         noise = NoiseModel((sigma_mm,) * 3 + (sigma_rad,) * 3)
-        return [RelativePoseTerm("E_odo", 0, k, T @ first.inverse(), anchor, noise)
+        return [RelativePoseTerm("E_odo", view_key(0), view_key(k), T @ first.inverse(), anchor, noise)
                 for k, T in enumerate(initial.T_cam_tibia) if k > 0]
 
     def edge_terms(self, points: np.ndarray, groups: dict[tuple[int, str], EdgeGroup]
@@ -253,13 +257,13 @@ class JointProblem:
         c = self.config.noise
         terms: list[Term] = []
         for (k, label), group in groups.items():
-            terms.append(ReprojectionTerm("E_rp", k, self.body_index(label), self.views[k].camera,
+            terms.append(ReprojectionTerm("E_rp", view_key(k), body_key(label), self.views[k].camera,
                                           group.pixels, group.ids,
                                           NoiseModel(c.sigma_px, _EDGE_LOSS, c.w_rp)))
             sigma_mm = c.sigma_mm if label == "bone" else c.pin_sigma_mm
             terms.append(BackProjectionTerm(
                 "E_bp", self.model(label).sdf, group.ids, group.directions, points[group.ids],
-                NoiseModel((sigma_mm, c.sigma_depth_mm), _EDGE_LOSS, c.w_bp), view=k,
-                body=self.body_index(label)))
+                NoiseModel((sigma_mm, c.sigma_depth_mm), _EDGE_LOSS, c.w_bp), view=view_key(k),
+                body=body_key(label)))
         return terms
 

@@ -1,8 +1,8 @@
 """The joint solver: both C-arm views, both pins and every edge point at once.
 
-Problem layout (docs/solver.md, :mod:`.problem`): poses ``[T_cam0_tibia, ..., T_camV-1_tibia,
-T_tibia_pin1, T_tibia_pin2]`` and one 3D point per kept contour pixel (bone points in the
-tibia frame, pin points in their pin's frame). A solve:
+Problem layout (docs/solver.md, :mod:`.problem`): poses ``T_camk_tibia`` of each view and
+``T_tibia_pin`` of each pin, named by key (:mod:`.variables`), and one 3D point per kept
+contour pixel (bone points in the tibia frame, pin points in their pin's frame). A solve:
 
 1. each view's bone found in its image by an exhaustive shift/rotation search;
 2. the configured method's stages (:mod:`.schedule`, run by :mod:`.stages`): for the
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -38,12 +38,13 @@ from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.optimizer import IterationInfo, SolveReport, State, Term
 from slamtka.solver.pin_naming import naming_clear, naming_score, settle_naming, swap_pins
 from slamtka.solver.plan import Plan
-from slamtka.solver.problem import InitialGuess, JointProblem
+from slamtka.solver.problem import InitialGuess, JointProblem, named_poses
 from slamtka.solver.schedule import METHODS
 from slamtka.solver.setup_search import search_setup
 from slamtka.solver.solver_config import SolverConfig
 from slamtka.solver.stages import StageRunner
 from slamtka.solver.uncertainty import angle_uncertainty
+from slamtka.solver.variables import PoseKey
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
 
@@ -100,7 +101,7 @@ def solve_joint(
     there."""
     start = time.perf_counter()
     problem = JointProblem(plan, views, config)
-    poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+    poses = named_poses(initial.T_cam_tibia, initial.T_tibia_pin)
     not_usable = gates.input_refusal(input_diagnostics(problem, initial), config.gates)
     if not_usable is not None:
         return _refused(problem, *not_usable, None, None, {}, start, poses)
@@ -124,7 +125,7 @@ def solve_joint(
     # saves ~0.3 s, but measured a 20-run swapped-names study case 30 deg off: the right
     # naming failed a pin gate from there.)
     other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
-                        tuple(outcome.T_cam_tibia) + tuple(initial.T_tibia_pin), callback, start)
+                        named_poses(outcome.T_cam_tibia, initial.T_tibia_pin), callback, start)
     chosen, refusal = settle_naming(outcome, other, unclear, sightings_prefer_second=other_mm < named_mm)
     log.info("views %s: pin names open; swapped they %s (%s)", unclear,
              "fit better" if chosen is other else "fit no better", other.status)
@@ -144,7 +145,7 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
     while it goes astray. If none measures, the refusal is that of the first attempt that
     converged (its gates say what does not fit), else of the last: a restart that lost its
     way says less about the images than a solve that found the bone and failed a gate."""
-    poses = tuple(initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+    poses = named_poses(initial.T_cam_tibia, initial.T_tibia_pin)
     outcome = best = _solve_from(problem, initial, poses, callback, start)
     iterations = outcome.iterations
     observed = [(T, view.camera, view.distance_map("bone"), view.contours["bone"])
@@ -154,7 +155,8 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
             break
         correction = search_setup(problem.bone.coarse_contour, observed,
                                   problem.plan.landmarks.T_tibia_anat(), search)
-        searched = tuple(T @ correction for T in initial.T_cam_tibia) + tuple(initial.T_tibia_pin)
+        searched = named_poses([T @ correction for T in initial.T_cam_tibia],
+                               initial.T_tibia_pin)
         outcome = _solve_from(problem, initial, searched, callback, start)
         outcome.initialisation = "global set-up search"
         iterations += outcome.iterations
@@ -167,24 +169,23 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
 
 def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,
              report: SolveReport | None, rms: dict[str, float], start: float,
-             poses: tuple[Pose, ...] = (), went_astray: bool = False) -> SolveOutcome:
+             poses: Mapping[PoseKey, Pose] | None = None, went_astray: bool = False) -> SolveOutcome:
     """A "not_measured" outcome; ``poses`` stand in for the state when none was solved;
     ``went_astray`` says a restart from a global search may still measure."""
-    n = problem.n_views
-    final = state.poses if state is not None else poses
+    final = state.poses if state is not None else poses or {}
+    views = [final[key] for key in problem.view_keys if key in final]
+    pins = [final[key] for key in problem.pin_keys if key in final]
     return SolveOutcome(
-        "not_measured", reason, state, list(final[:n]),
-        list(final[n:]), None, None, rms, report.term_costs if report else {},
+        "not_measured", reason, state, views, pins, None, None, rms, report.term_costs if report else {},
         report.iterations if report else 0, time.perf_counter() - start,
         bool(report and report.converged), report.reason if report else "not run",
         problem.point_counts(), went_astray=went_astray, why=why)
 
 
-def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose, ...],
+def _solve_from(problem: JointProblem, initial: InitialGuess, poses: Mapping[PoseKey, Pose],
                 callback: Callable[[str, IterationInfo], None] | None,
                 start: float) -> SolveOutcome:
     """One solve of the configured method from ``poses``, with its gates and uncertainty."""
-    n = problem.n_views
     # Global step, shared by every method: where in each image is the bone? The views are
     # searched in parallel threads (OpenCV's template correlation releases the GIL), each
     # also building its pins' distance maps there (OpenCV's distance transform releases it
@@ -194,8 +195,9 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: tuple[Pose,
             view.distance_map(label)
         return align_view_in_image(problem.bone.contour, T, view.camera, view.distance_map("bone"))
 
-    with ThreadPoolExecutor(n) as pool:
-        poses = tuple(pool.map(aligned, poses[:n], problem.views)) + poses[n:]
+    with ThreadPoolExecutor(len(problem.views)) as pool:
+        views = pool.map(aligned, [poses[key] for key in problem.view_keys], problem.views)
+        poses = {**poses, **dict(zip(problem.view_keys, views))}
     runner = StageRunner(problem, initial, callback)
     result = runner.run(State(poses, np.zeros((0, 3))))
     fine = result.report
@@ -214,7 +216,7 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
             report: SolveReport, start: float) -> SolveOutcome:
     """The outcome of a finished solve: its quality gates, then the plane and its
     covariance-based uncertainty."""
-    limits, plan, n = problem.config.gates, problem.plan, problem.n_views
+    limits, plan = problem.config.gates, problem.plan
     d = diagnose(problem, state, terms)
     rms = d.residual_rms
     if not fine.converged:
@@ -238,7 +240,8 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     if too_close is not None:
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)
 
-    final_views, pins = list(state.poses[:n]), list(state.poses[n:])
+    final_views = [state.poses[key] for key in problem.view_keys]
+    pins = [state.poses[key] for key in problem.pin_keys]
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
     angle_cov = angle_uncertainty(problem, state, terms, fine.cost, d.n_residuals)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))

@@ -28,6 +28,7 @@ from slamtka.solver.optimizer import (
 )
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.schedule import SCHEDULES, Held, Stage, Step
+from slamtka.solver.variables import PoseKey
 
 __all__ = ["StageRunner", "StagesResult"]
 
@@ -44,8 +45,8 @@ class _SettledAngles:
 
     def _angles(self, state: State) -> np.ndarray:
         plan = self.problem.plan
-        plane = fit_resection_plane(list(state.poses[self.problem.n_views:]), plan.pin_length(),
-                                    plan.landmarks)
+        plane = fit_resection_plane([state.poses[key] for key in self.problem.pin_keys],
+                                    plan.pin_length(), plan.landmarks)
         return np.degrees([plane.ctr, plane.str_])
 
     def __call__(self, info: IterationInfo) -> str | None:
@@ -81,7 +82,7 @@ class StageRunner:
         self.renamed: list[str] = []  # views whose pin names were swapped
         self.unclear_naming: list[str] = []  # views whose pin names the sightings leave open
 
-    def lm(self, terms: list[Term], state: State, held: np.ndarray, options: LMOptions,
+    def lm(self, terms: list[Term], state: State, held: dict[PoseKey, np.ndarray], options: LMOptions,
            name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
         """One optimiser stage; with ``until_settled`` it also ends once the resection
         angles stop moving (:class:`_SettledAngles`)."""
@@ -106,10 +107,8 @@ class StageRunner:
                 if stopped:
                     return result
             elif stage.step is Step.TRIANGULATE_PINS:
-                n = self.problem.n_views
                 pins = self.problem.triangulated_pins(result.state.poses)
-                result = StagesResult(State(result.state.poses[:n] + pins, result.state.points),
-                                      result.terms, result.report)
+                result = StagesResult(result.state.with_poses(pins), result.terms, result.report)
             elif stage.step is Step.SILHOUETTES:
                 result = self._silhouettes(stage, result)
             elif stage.step is Step.EDGES:
@@ -118,7 +117,7 @@ class StageRunner:
                 result = self._joint(stage, result)
         return result
 
-    def _held(self, stage: Stage) -> np.ndarray:
+    def _held(self, stage: Stage) -> dict[PoseKey, np.ndarray]:
         return self.problem.fixed_dofs(views=stage.held is Held.VIEWS, pins=stage.held is Held.PINS)
 
     def _options(self, stage: Stage) -> LMOptions:
@@ -202,8 +201,8 @@ class StageRunner:
             state, report = self.lm(terms, State(state.poses, points), self._held(stage), options,
                                     name, until_settled=True)
             seatings += 1
-            turned_deg = np.degrees(max(T.rotation_angle_to(U)
-                                        for T, U in zip(seated_at, state.poses)))
+            turned_deg = np.degrees(max(T.rotation_angle_to(state.poses[key])
+                                        for key, T in seated_at.items()))
             if seatings >= c.max_seatings or (seatings > 1 and turned_deg <= c.reseat_turn_deg):
                 break
             options, name = self._options(stage), f"{stage.name} reseated"

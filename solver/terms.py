@@ -13,12 +13,14 @@ which whitens and charges them by the term's :class:`~slamtka.solver.optimizer.N
 - :class:`RelativePoseTerm` (E_odo): the motion of the C-arm between two views agrees with
   what its joint encoders measured. Touches both view poses.
 
-Pose indices refer to ``State.poses``; a body index of ``None`` means the bone, whose frame
-is the tibia frame itself.
+Terms name the poses they touch by key (:mod:`.variables`): a view, and a body that is a pin
+or :data:`~slamtka.solver.variables.BONE`, whose frame is the tibia frame itself (no pose to
+estimate, so no Jacobian block).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,13 +32,14 @@ from slamtka.solver.observations import DistanceMap, VisibleRegion
 from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import INTERIOR_REUSE_PX, ContourGenerator
+from slamtka.solver.variables import BONE, PoseKey
 
 __all__ = ["Correspondence", "ReprojectionTerm", "BackProjectionTerm", "ModelProjectionTerm", "RelativePoseTerm",
-           "pose_increments", "projected"]
+           "pose_in_view", "pose_increments", "projected"]
 
 
 def pose_increments(
-    state: State, view: int, body: int | None, X: np.ndarray, G_cam: np.ndarray
+    state: State, view: PoseKey, body: PoseKey, X: np.ndarray, G_cam: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Jacobians with respect to the view and body poses of quantities whose gradient with
     respect to the camera-frame point ``T X`` is ``G_cam`` (N, ..., 3), at body-frame points
@@ -57,35 +60,37 @@ def pose_increments(
         return (G.reshape(-1, 3) @ R).reshape(G.shape)
 
     G_view = rotated(G_cam, state.poses[view].R)
-    if body is None:
+    if body == BONE:
         return increments(G_view, X), None, G_view
     T_body = state.poses[body]
     G_body = rotated(G_view, T_body.R)
     return increments(G_view, T_body.apply(X)), increments(G_body, X), G_body
 
 
+def pose_in_view(poses: Mapping[PoseKey, Pose], view: PoseKey, body: PoseKey) -> Pose:
+    """The pose of ``body`` in ``view``'s camera frame at ``poses``."""
+    T_view = poses[view]
+    return T_view if body == BONE else T_view @ poses[body]
+
+
 def projected(
-    state: State, view: int, body: int | None, X: np.ndarray, camera: Camera,
-    jacobians: bool = True
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    state: State, view: PoseKey, body: PoseKey, X: np.ndarray, camera: Camera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """Pixels of body-frame points and their Jacobians.
 
     Returns ``uv`` (N, 2), ``d uv / d xi_view`` (N, 2, 6), ``d uv / d xi_body`` (N, 2, 6) or
-    None for the bone, and ``d uv / d X`` (N, 2, 3) (see :func:`pose_increments`). Without
-    ``jacobians`` (trial steps: half of all evaluations) only ``uv`` is computed and the
-    rest is None.
+    None for the bone, and ``d uv / d X`` (N, 2, 3) (see :func:`pose_increments`).
     """
-    T_view = state.poses[view]
-    T = T_view if body is None else T_view @ state.poses[body]
-    if not jacobians:
-        return camera.project(T.apply(X)), None, None, None
-    uv, J_proj = camera.project_with_jacobian(T.apply(X))
+    uv, J_proj = camera.project_with_jacobian(pose_in_view(state.poses, view, body).apply(X))
     return (uv,) + pose_increments(state, view, body, X, J_proj)
 
 
-def _pose_jacobians(view: int, body: int | None, J_view: np.ndarray,
-                    J_body: np.ndarray | None) -> list[tuple[int, np.ndarray]]:
-    return [(view, J_view)] if body is None else [(view, J_view), (body, J_body)]
+def _pose_jacobians(view: PoseKey, body: PoseKey, J_view: np.ndarray,
+                    J_body: np.ndarray | None) -> list[tuple[PoseKey, np.ndarray]]:
+    """The Jacobian blocks by key: the bone's frame has none."""
+    if J_body is None:
+        return [(view, J_view)]
+    return [(view, J_view), (body, J_body)]
 
 
 @dataclass
@@ -93,21 +98,20 @@ class ReprojectionTerm:
     """E_rp for the edge points ``point_ids`` observed at ``pixels`` in one view."""
 
     name: str
-    view: int
-    body: int | None
+    view: PoseKey
+    body: PoseKey
     camera: Camera
     pixels: np.ndarray  # (N, 2)
     point_ids: np.ndarray  # (N,)
     noise: NoiseModel  # sigma in pixels
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        uv, J_view, J_body, J_point = projected(state, self.view, self.body,
-                                                state.points[self.point_ids], self.camera,
-                                                jacobians)
-        r = uv - self.pixels
-        if not jacobians:
-            return Linearization(r)
-        return Linearization(r, _pose_jacobians(self.view, self.body, J_view, J_body),
+        X = state.points[self.point_ids]
+        if not jacobians:  # trial steps: half of all evaluations
+            uv = self.camera.project(pose_in_view(state.poses, self.view, self.body).apply(X))
+            return Linearization(uv - self.pixels)
+        uv, J_view, J_body, J_point = projected(state, self.view, self.body, X, self.camera)
+        return Linearization(uv - self.pixels, _pose_jacobians(self.view, self.body, J_view, J_body),
                              (self.point_ids, J_point))
 
 
@@ -130,10 +134,10 @@ class BackProjectionTerm:
     ray_directions: np.ndarray  # (N, 3) unit, model frame
     seated: np.ndarray  # (N, 3) model frame
     noise: NoiseModel  # sigmas (mm) of the distance to the surface and along the ray
-    # Where the points were observed (view, body index as in ReprojectionTerm), for reports;
-    # the residuals concern the points alone.
-    view: int | None = None
-    body: int | None = None
+    # Where the points were observed (view and body keys as in ReprojectionTerm), for
+    # reports; the residuals concern the points alone.
+    view: PoseKey | None = None
+    body: PoseKey | None = None
 
     def graze_offset_rms_mm(self, state: State) -> float:
         """RMS distance (mm) of the points from where their rays graze the model: off its
@@ -148,6 +152,7 @@ class BackProjectionTerm:
         r = np.column_stack([d, along])
         if not jacobians:
             return Linearization(r)
+        assert grad is not None  # asked for with the Jacobians
         J = np.stack([grad, self.ray_directions], axis=1)
         return Linearization(r, [], (self.point_ids, J))
 
@@ -187,8 +192,8 @@ class ModelProjectionTerm:
     """
 
     name: str
-    view: int
-    body: int | None
+    view: PoseKey
+    body: PoseKey
     camera: Camera
     contour: ContourGenerator
     distance_map: DistanceMap
@@ -202,10 +207,6 @@ class ModelProjectionTerm:
     # The footprint that tells the outer outline from interior folds, and the pose it was
     # rasterised at: a cache of :meth:`correspond`, redone once the model has moved enough.
     _interior: tuple[Pose, np.ndarray] | None = field(default=None, init=False, repr=False)
-
-    def _T_cam_body(self, state: State) -> Pose:
-        T = state.poses[self.view]
-        return T if self.body is None else T @ state.poses[self.body]
 
     def _trace(self, T_cam_body: Pose) -> np.ndarray:
         """Model-frame outline points at ``T_cam_body``."""
@@ -221,7 +222,7 @@ class ModelProjectionTerm:
     def correspond(self, state: State) -> None:
         """The correspondence step at ``state``: the outline traced (unless frozen and
         traced already) and each observed pixel paired with its nearest outline point."""
-        T_cam_body = self._T_cam_body(state)
+        T_cam_body = pose_in_view(state.poses, self.view, self.body)
         held = self.correspondence
         S = held.outline if held is not None and self.freeze_outline else self._trace(T_cam_body)
         nearest, charged = None, np.arange(len(S))
@@ -252,7 +253,7 @@ class ModelProjectionTerm:
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
         if self.correspondence is None:
             raise RuntimeError("a silhouette term is linearised after its correspondence step")
-        T_cam_body = self._T_cam_body(state)
+        T_cam_body = pose_in_view(state.poses, self.view, self.body)
         S, nearest = self.correspondence.outline, self.correspondence.nearest
         charged = self.correspondence.charged
         if nearest is None:
@@ -299,8 +300,8 @@ class RelativePoseTerm:
     """
 
     name: str
-    view_a: int
-    view_b: int
+    view_a: PoseKey
+    view_b: PoseKey
     measured: Pose
     anchor: Pose
     noise: NoiseModel  # sigmas of the translation (mm, x3) and the rotation (rad, x3)

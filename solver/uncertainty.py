@@ -9,6 +9,7 @@ from slamtka.solver.measurement import angle_covariance
 from slamtka.solver.optimizer import SharedError, State, Term, pose_covariance
 from slamtka.solver.problem import JointProblem
 from slamtka.solver.terms import BackProjectionTerm
+from slamtka.solver.variables import BONE
 
 __all__ = ["angle_uncertainty"]
 
@@ -18,19 +19,19 @@ def angle_uncertainty(problem: JointProblem, state: State, terms: list[Term], co
     """Covariance (2, 2) rad^2 of (CTR, STR) from the final energy ``terms`` at ``state``,
     scaled up by the fit's variance factor (``cost`` over ``n_residuals``' degrees of
     freedom) where the residuals are larger than their sigmas say."""
-    n, plan = problem.n_views, problem.plan
-    fixed = problem.fixed_dofs()
+    plan, fixed = problem.plan, problem.fixed_dofs()
     # E_mp charges the same contour pixels again that the edge points (E_rp, E_bp) explain:
     # where those exist, its information would be counted twice, and the spread understated.
     with_edges = any(term.name == "E_rp" for term in terms)
     cov_terms = [t for t in terms if not (with_edges and t.name == "E_mp")]
     cov, cov_segmentation = pose_covariance(cov_terms, state, fixed,
                                             _segmentation_error(problem, state, cov_terms))
-    pin_slice = slice(6 * n, 6 * (n + 2))
-    dof = n_residuals - len(state.points) * 3 - int(np.count_nonzero(~fixed))
+    dof = n_residuals - len(state.points) * 3 - int(np.count_nonzero(~state.ordering.mask(fixed)))
     variance_factor = max(1.0, cost / max(dof, 1))
+    pins = problem.pin_keys
     return angle_covariance(
-        list(state.poses[n:]), (cov * variance_factor + cov_segmentation)[pin_slice, pin_slice],
+        [state.poses[key] for key in pins],
+        state.ordering.marginal(cov * variance_factor + cov_segmentation, pins),
         plan.pin_length(), plan.landmarks)
 
 
@@ -45,7 +46,7 @@ def _segmentation_error(problem: JointProblem, state: State, terms: list[Term]
     their distance ``d`` (``l``, ``NoiseModelConfig.segmentation_correlation_mm``), whitened by
     the bone's per-point ``sigma_mm``."""
     sd_mm = problem.plan.segmentation_sd_mm
-    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
+    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body == BONE]
     if sd_mm <= 0.0 or not bone:
         return None
     c = problem.config

@@ -54,21 +54,22 @@ def test_relative_pose_jacobians_far_from_agreement():
     (the simulated cases start where they agree, which tests little of the rotation part)."""
     from slamtka.solver.optimizer import NoiseModel, State, whitened
     from slamtka.solver.terms import RelativePoseTerm
+    from slamtka.solver.variables import view_key
 
     rng = np.random.default_rng(3)
 
     def random_pose() -> Pose:
         return Pose(so3_exp(rng.normal(size=3) * 0.6), rng.normal(size=3) * 50.0)
 
-    term = RelativePoseTerm("E_odo", 0, 1, random_pose(), random_pose(),
+    term = RelativePoseTerm("E_odo", view_key(0), view_key(1), random_pose(), random_pose(),
                             NoiseModel((2.0,) * 3 + (0.01,) * 3))
-    state = State((random_pose(), random_pose()), np.zeros((0, 3)))
+    state = State({view_key(0): random_pose(), view_key(1): random_pose()}, np.zeros((0, 3)))
     lin = whitened(term, state)
     eps = 1e-6
     for pose, J in lin.pose_jacobians:
         for dof in range(6):
             step = np.zeros((2, 6))
-            step[pose, dof] = eps
+            step[state.ordering.index(pose), dof] = eps
             plus = whitened(term, state.retract(step.ravel(), state.points), False).residuals
             minus = whitened(term, state.retract(-step.ravel(), state.points), False).residuals
             fd = (plus - minus)[0] / (2 * eps)

@@ -10,6 +10,7 @@ from slamtka.service.recording import CaseRecorder
 from slamtka.service.replay import check_recording, read_recording
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.solver.optimizer import IterationInfo, State
+from slamtka.solver.variables import pin_key, view_key
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +31,7 @@ def _record(path, plan, result: dict) -> None:
     rec.contours("view1", {"bone": np.random.default_rng(0).random((40, 2)) * 60,
                            "pin1": np.zeros((5, 2)), "pin2": np.ones((7, 2))}, "extracted")
     rec.stage("solve")
-    poses = (plan.landmarks.T_tibia_anat(),) * 3
+    poses = dict.fromkeys((view_key(0), pin_key("pin1"), pin_key("pin2")), plan.landmarks.T_tibia_anat())
     for k, cost in enumerate((10.0, 4.0, 3.5)):
         rec.iteration("joint", IterationInfo(k, cost, {"E_rp": cost / 2}, 1e-3,
                                              State(poses, np.zeros((0, 3)))))

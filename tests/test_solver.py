@@ -14,16 +14,17 @@ from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
 from slamtka.solver.pin_naming import settle_naming, swap_pins
-from slamtka.solver.problem import JointProblem
+from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.slam import METHODS, InitialGuess, SolverConfig, solve_joint
 from slamtka.solver.solver_config import GateLimits, SamplingConfig, ScheduleConfig
+from slamtka.solver.variables import BONE, pin_key, view_key
 
 
 def _linearized_problem(plan, seed=0):
     case = simulate_case(plan, SimulationConfig(seed=seed, init_rot_sd_rad=0.02, init_trans_sd_mm=3.0))
     problem = JointProblem(plan, case.views, SolverConfig(sampling=SamplingConfig(edge_spacing_px=12.0)))
-    poses = tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin)
+    poses = named_poses(case.initial.T_cam_tibia, case.initial.T_tibia_pin)
     points, groups = problem.seated_points(poses)
     from slamtka.solver.optimizer import RobustLoss
 
@@ -36,7 +37,7 @@ def _linearized_problem(plan, seed=0):
 
 def test_analytic_jacobians_match_finite_differences(real_plan):
     _, _, state, terms = _linearized_problem(real_plan)
-    n_poses = len(state.poses)
+    n_poses = len(state.ordering)
     checked = set()
     for term in terms:
         lin = optimizer.whitened(term, state)
@@ -44,7 +45,7 @@ def test_analytic_jacobians_match_finite_differences(real_plan):
             for dof in range(6):
                 eps = 1e-7
                 d = np.zeros((n_poses, 6))
-                d[p, dof] = eps
+                d[state.ordering.index(p), dof] = eps
                 moved = optimizer.whitened(term, state.retract(d.ravel(), np.zeros_like(state.points)),
                                            False)
                 if moved.residuals.shape != lin.residuals.shape:
@@ -91,22 +92,22 @@ def test_a_shared_surface_error_moves_the_poses_as_its_covariance_says(phantom_p
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=4, init_rot_sd_rad=0.0, init_trans_sd_mm=0.0))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
     state = State(truth, points)
     # Least squares: a robust loss's weights would move with the residuals, not the response.
     terms = [replace(t, noise=replace(t.noise, loss=RobustLoss("l2")))
              for t in problem.edge_terms(points, groups) + problem.odometry_terms(case.initial)]
     fixed = problem.fixed_dofs()
-    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body is None]
+    bone = [t for t in terms if isinstance(t, BackProjectionTerm) and t.body == BONE]
     offset_mm = 0.02
     dilated = [replace(t, sdf=_Dilated(t.sdf, offset_mm)) if any(t is b for b in bone) else t
                for t in terms]
 
     def step(terms):
         lins, _ = _evaluate(terms, state, jacobians=True)
-        ne = optimizer.build_normal_equations(terms, lins, len(state.poses), len(state.points))
-        return _solve_step(ne, len(state.poses), ~fixed, 0.0)[0]
+        ne = optimizer.build_normal_equations(terms, lins, state.ordering, len(state.points))
+        return _solve_step(ne, len(state.ordering), ~state.ordering.mask(fixed), 0.0)[0]
 
     change = step(dilated) - step(terms)
     # One shared error of unit variance: the response to it is the covariance's square root.
@@ -138,12 +139,12 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
     """A point coupled to a pose by two terms gets the sum of both blocks; a coupling of one
     term is kept as it is."""
     _, _, state, terms = _linearized_problem(phantom_plan)
-    P, X = len(state.poses), len(state.points)
-    pin_rp = next(t for t in terms if t.name == "E_rp" and t.body is not None)
+    P, X = len(state.ordering), len(state.points)
+    pin_rp = next(t for t in terms if t.name == "E_rp" and t.body != BONE)
 
     def couplings(term_list):
         lins = [optimizer.whitened(t, state) for t in term_list]
-        ne = optimizer.build_normal_equations(term_list, lins, P, X)
+        ne = optimizer.build_normal_equations(term_list, lins, state.ordering, X)
         assert np.all(np.diff(ne.pair_point * P + ne.pair_pose) > 0)  # one block per pair
         return {(int(x), int(a)): block for x, a, block in zip(ne.pair_point, ne.pair_pose, ne.H_px)}
 
@@ -156,10 +157,10 @@ def test_normal_equations_sum_couplings_that_terms_share(phantom_plan):
 
 def test_schur_step_equals_the_dense_solution(real_plan):
     _, problem, state, terms = _linearized_problem(real_plan)
-    P, X = len(state.poses), len(state.points)
+    P, X = len(state.ordering), len(state.points)
     lins = [optimizer.whitened(t, state) for t in terms]
-    ne = optimizer.build_normal_equations(terms, lins, P, X)
-    free = ~problem.fixed_dofs()
+    ne = optimizer.build_normal_equations(terms, lins, state.ordering, X)
+    free = ~state.ordering.mask(problem.fixed_dofs())
     lam = 1e-3
     d_p, d_x = optimizer._solve_step(ne, P, free, lam)
     # Dense system in the same damping convention.
@@ -285,8 +286,8 @@ def test_pins_triangulate_from_their_contours(real_plan):
     case = simulate_case(real_plan, SimulationConfig(seed=4))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     planned = tuple(case.initial.T_tibia_pin)
-    pins = problem.triangulated_pins(tuple(case.truth_T_cam_tibia) + planned)
-    for found, truth in zip(pins, case.truth_T_tibia_pin):
+    pins = problem.triangulated_pins(named_poses(case.truth_T_cam_tibia, planned))
+    for found, truth in zip(pins.values(), case.truth_T_tibia_pin):
         assert np.degrees(np.arccos(found.R[:, 2] @ truth.R[:, 2])) < 1.5
         assert np.linalg.norm(found.t - truth.t) < 4.0
 
@@ -300,8 +301,8 @@ def test_pin_triangulation_tolerates_view_errors_near_the_epipolar_plane(real_pl
     knee = real_plan.landmarks.T_tibia_anat()
     about_knee = knee @ Pose.identity().retract([0.0, 0.0, 2.0, np.radians(1.5), 0.0, np.radians(1.5)]) @ knee.inverse()
     views = (case.truth_T_cam_tibia[0], case.truth_T_cam_tibia[1] @ about_knee)
-    pins = problem.triangulated_pins(views + tuple(case.initial.T_tibia_pin))
-    for found, truth in zip(pins, case.truth_T_tibia_pin):
+    pins = problem.triangulated_pins(named_poses(views, case.initial.T_tibia_pin))
+    for found, truth in zip(pins.values(), case.truth_T_tibia_pin):
         assert np.degrees(np.arccos(found.R[:, 2] @ truth.R[:, 2])) < 4.0
         assert np.linalg.norm(found.t - truth.t) < 5.0
 
@@ -310,13 +311,13 @@ def test_odometry_residual_is_zero_for_the_encoder_motion(real_plan):
     case = simulate_case(real_plan, SimulationConfig(seed=5))
     problem = JointProblem(real_plan, case.views, SolverConfig())
     (term,) = problem.odometry_terms(case.initial)
-    state = State(tuple(case.initial.T_cam_tibia) + tuple(case.initial.T_tibia_pin), np.zeros((0, 3)))
+    state = State(named_poses(case.initial.T_cam_tibia, case.initial.T_tibia_pin), np.zeros((0, 3)))
     assert np.allclose(optimizer.whitened(term, state, False).residuals, 0.0, atol=1e-9)
     # Moving one view by the encoder sigma about the knee costs one sigma.
     anchor = real_plan.landmarks.T_tibia_anat()
     sigma_rad = term.noise.sigma[5]
-    moved = state.poses[1] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, sigma_rad]) @ anchor.inverse()
-    r = optimizer.whitened(term, State((state.poses[0], moved) + state.poses[2:], state.points), False).residuals
+    moved = state.poses[view_key(1)] @ anchor @ Pose.identity().retract([0, 0, 0, 0, 0, sigma_rad]) @ anchor.inverse()
+    r = optimizer.whitened(term, state.with_poses({view_key(1): moved}), False).residuals
     assert np.isclose(np.linalg.norm(r), 1.0, rtol=1e-6)
 
 
@@ -355,18 +356,19 @@ def test_a_model_outline_off_its_contour_is_named(real_plan):
 
     case = simulate_case(real_plan, SimulationConfig(seed=8))
     problem = JointProblem(real_plan, case.views, SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     assert _contour_misfit(problem, State(truth, np.zeros((0, 3)))) is None
-    moved = Pose(truth[-2].R, truth[-2].t + 4.0 * truth[-2].R[:, 0])
-    reason = _contour_misfit(problem, State(truth[:-2] + (moved, truth[-1]), np.zeros((0, 3))))
+    pin1, pin2 = truth[pin_key("pin1")], truth[pin_key("pin2")]
+    moved = Pose(pin1.R, pin1.t + 4.0 * pin1.R[:, 0])
+    reason = _contour_misfit(problem, State(truth | {pin_key("pin1"): moved}, np.zeros((0, 3))))
     assert reason is not None and "pin1 outline" in reason
     # A pin turned 2 deg about its tip keeps most of its outline near the contour (a small
     # median) but its far end off it.
     from slamtka.solver.geometry import rotation_about
 
-    turned = Pose(truth[-1].R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), truth[-1].t)
+    turned = Pose(pin2.R @ rotation_about([0.0, 1.0, 0.0], np.radians(2.0)), pin2.t)
     strict = JointProblem(real_plan, case.views, SolverConfig(gates=GateLimits(max_pin_outline_p90_px=6.0)))
-    reason = _contour_misfit(strict, State(truth[:-1] + (turned,), np.zeros((0, 3))))
+    reason = _contour_misfit(strict, State(truth | {pin_key("pin2"): turned}, np.zeros((0, 3))))
     assert reason is not None and "pin2 outline" in reason and "leaves its contour" in reason
 
 
@@ -376,7 +378,7 @@ def test_pin_edge_points_off_the_pin_are_named(real_plan):
 
     case = simulate_case(real_plan, SimulationConfig(seed=8, noise_px=0.0))
     problem = JointProblem(real_plan, case.views, SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
     terms = problem.edge_terms(points, groups)
     assert _contour_misfit(problem, State(truth, points), terms) is None
@@ -417,7 +419,7 @@ def test_stray_bone_contour_points_get_no_edge_points(phantom_plan):
     case = simulate_case(phantom_plan, SimulationConfig(seed=12))
     views, in_place, strays = _with_stray_bone_pixels(case, 0.06, seed=1)
     problem = JointProblem(phantom_plan, views, SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     _, groups = problem.seated_points(truth)
     def count(pixels: np.ndarray, among: set) -> int:
         return sum(tuple(p) in among for p in pixels)
@@ -447,7 +449,7 @@ def test_a_bone_contour_that_mostly_misses_the_bone_is_refused(phantom_plan):
     case = simulate_case(phantom_plan, SimulationConfig(seed=12, noise_px=0.0))
     problem = JointProblem(phantom_plan, _with_stray_bone_pixels(case, 0.3, seed=2)[0],
                            SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     points, groups = problem.seated_points(truth)
     reason = _contour_misfit(problem, State(truth, points), problem.edge_terms(points, groups))
     assert reason is not None and "bone contour of view" in reason and "lie more than 3 mm off" in reason
@@ -501,13 +503,14 @@ def test_pins_that_are_not_parallel_are_named(phantom_plan):
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
-    truth = tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin)
+    truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     assert _pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
     # Turned about its own axis, a pin is the same pin.
-    spun = Pose(truth[-1].R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), truth[-1].t)
-    assert _pin_divergence(problem, State(truth[:-1] + (spun,), np.zeros((0, 3)))) is None
-    turned = Pose(truth[-1].R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), truth[-1].t)
-    reason = _pin_divergence(problem, State(truth[:-1] + (turned,), np.zeros((0, 3))))
+    pin2 = truth[pin_key("pin2")]
+    spun = Pose(pin2.R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), pin2.t)
+    assert _pin_divergence(problem, State(truth | {pin_key("pin2"): spun}, np.zeros((0, 3)))) is None
+    turned = Pose(pin2.R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), pin2.t)
+    reason = _pin_divergence(problem, State(truth | {pin_key("pin2"): turned}, np.zeros((0, 3))))
     assert reason is not None and "5.0 deg from parallel" in reason
 
 
@@ -697,7 +700,7 @@ def test_pins_one_behind_the_other_are_measured_as_overlapping(phantom_plan):
 
     for angles, overlapping in (((-49.67, 37.54), {"view1"}), ((-30.0, 30.0), set())):
         case = simulate_case(phantom_plan, SimulationConfig(seed=1, view_angles_deg=angles))
-        truth = State(tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin), np.zeros((0, 3)))
+        truth = State(named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin), np.zeros((0, 3)))
         shares = {o.view_id: o.share for o in pin_overlaps(JointProblem(phantom_plan, case.views, SolverConfig()), truth)}
         limit = GateLimits().max_pin_overlap_share
         assert {v for v, share in shares.items() if share > limit} == overlapping, shares

@@ -9,7 +9,7 @@ from slamtka.solver.diagnostics import outline_fits
 from slamtka.solver.gates import Why
 from slamtka.solver.observations import ViewObservation, VisibleRegion
 from slamtka.solver.optimizer import RobustLoss, State, correspond
-from slamtka.solver.problem import JointProblem
+from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.slam import SolverConfig, solve_joint
 
 CELL_PX = 4
@@ -58,7 +58,7 @@ def test_a_hidden_part_of_the_outline_is_not_charged_and_does_not_pull(phantom_p
     case = simulate_case(phantom_plan, SimulationConfig(seed=0))
     hidden = [_hidden_band(case.views[0], 0.6)] + case.views[1:]
     unmarked = [ViewObservation(hidden[0].view_id, hidden[0].camera, hidden[0].contours)] + hidden[1:]
-    truth = State(tuple(case.truth_T_cam_tibia) + tuple(case.truth_T_tibia_pin), np.zeros((0, 3)))
+    truth = State(named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin), np.zeros((0, 3)))
     assert np.max(_outline_distances(phantom_plan, unmarked, truth)) > 20.0
     assert np.max(_outline_distances(phantom_plan, hidden, truth)) < 5.0
     fit = outline_fits(JointProblem(phantom_plan, hidden, SolverConfig()), truth, ("bone",))[0]
