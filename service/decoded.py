@@ -9,9 +9,12 @@ the status objects the frame; none decodes the instance again.
 
 The frames are kept in a small cache by instance digest (the spool entry's id), least
 recently used first out, because pixels are large (2 MB for 1024 x 1024, 8 MB for 2048 x
-2048) and a burst of receipts must not grow the process without bound: ``CAPACITY`` holds a
-run's views (``pipeline.max_views``, 6 by default) and the view just received, so on the
-normal path each instance's pixels are decoded once per process. A frame no longer cached
+2048) and a burst of receipts must not grow the process without bound: at most
+``MAX_FRAMES`` frames and ``MAX_BYTES`` of pixels (the newest frame is always kept). That
+holds a run's views (``pipeline.max_views``, 6 by default) and the views just received for
+frames up to 1024 x 1024, so on the normal path each instance's pixels are decoded once per
+process; of larger frames fewer are kept (the allocator keeps two to three times what is
+held resident: ``bench hardening --only burst_memory``). A frame no longer cached
 (after a restart, or pushed out) is rebuilt from the sidecar's facts and a pixel-only read
 of the spooled file (:func:`decode_pixels`), never by decoding its header again.
 
@@ -35,9 +38,10 @@ from slamtka.service.frames import Frame, FrameError, FrameHeader, decode_frame,
 if TYPE_CHECKING:
     from slamtka.service.spool import Spool, SpoolEntry
 
-__all__ = ["CAPACITY", "Decoded", "DecodedFrames", "sidecar_of"]
+__all__ = ["MAX_FRAMES", "MAX_BYTES", "Decoded", "DecodedFrames", "sidecar_of"]
 
-CAPACITY = 8
+MAX_FRAMES = 16
+MAX_BYTES = 32 << 20
 _FRAME, _PAIRING, _BYTES = "frame", "pairing", "instance_bytes"
 
 
@@ -73,9 +77,10 @@ def _parts(doc: dict | None) -> tuple[FrameHeader | None, int | None, dict | Non
 class DecodedFrames:
     """The decoded instances of one spool (one per process: the service's spool)."""
 
-    def __init__(self, spool: Spool, capacity: int = CAPACITY):
-        self.spool, self.capacity = spool, capacity
+    def __init__(self, spool: Spool, max_frames: int = MAX_FRAMES, max_bytes: int = MAX_BYTES):
+        self.spool, self.max_frames, self.max_bytes = spool, max_frames, max_bytes
         self._frames: OrderedDict[str, Decoded] = OrderedDict()
+        self._bytes = 0  # of the pixels kept
         self._lock = threading.Lock()  # receiver threads keep, the worker gets
 
     def keep(self, entry: SpoolEntry, frame: Frame, header: Dataset) -> None:
@@ -133,8 +138,13 @@ class DecodedFrames:
 
     def _remember(self, entry: SpoolEntry, decoded: Decoded) -> Decoded:
         with self._lock:
+            replaced = self._frames.pop(entry.id, None)
+            if replaced is not None:
+                self._bytes -= replaced.frame.pixels.nbytes
             self._frames[entry.id] = decoded
-            self._frames.move_to_end(entry.id)
-            while len(self._frames) > self.capacity:
-                self._frames.popitem(last=False)
+            self._bytes += decoded.frame.pixels.nbytes
+            while len(self._frames) > 1 and (len(self._frames) > self.max_frames
+                                             or self._bytes > self.max_bytes):
+                _, dropped = self._frames.popitem(last=False)
+                self._bytes -= dropped.frame.pixels.nbytes
         return decoded

@@ -464,11 +464,13 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     words = _stored_words(ds, syntax, frames, rows * columns, bits_allocated, high_bit,
                           bits_stored)
     mask = np.uint16((1 << bits_stored) - 1)
-    pixels = (words.astype(np.uint16) >> np.uint16(high_bit - bits_stored + 1)) & mask
+    pixels = words.astype(np.uint16)  # the one copy: the rest in place (a kept frame's size)
+    pixels >>= np.uint16(high_bit - bits_stored + 1)
+    pixels &= mask
     if representation == 1:
         pixels ^= np.uint16(1 << (bits_stored - 1))  # two's complement to offset binary
     if inverted:
-        pixels = mask - pixels
+        np.subtract(mask, pixels, out=pixels)
     return pixels.reshape(rows, columns), bits_stored
 
 

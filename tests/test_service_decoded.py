@@ -155,7 +155,7 @@ def test_a_file_truncated_since_its_receipt_is_refused_without_decoding(tmp_path
 
 def test_the_cache_keeps_the_most_recently_used_frames(tmp_path):
     spool = Spool(tmp_path)
-    decoded = DecodedFrames(spool, capacity=2)
+    decoded = DecodedFrames(spool, max_frames=2)
     entries = []
     for k in range(3):
         frame = small_frame(instance_number=k + 1)
