@@ -464,7 +464,7 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     words = _stored_words(ds, syntax, frames, rows * columns, bits_allocated, high_bit,
                           bits_stored)
     mask = np.uint16((1 << bits_stored) - 1)
-    pixels = words.astype(np.uint16)  # the one copy: the rest in place (a kept frame's size)
+    pixels = words.astype(np.uint16)  # one copy, then in place: no frame-sized temporaries
     pixels >>= np.uint16(high_bit - bits_stored + 1)
     pixels &= mask
     if representation == 1:

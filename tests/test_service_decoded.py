@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import fields
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from slamtka.service.audit import AuditLog
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.config import SenderConfig, config_from_dict
 from slamtka.service.decoded import DecodedFrames
-from slamtka.service.frames import FrameError, FrameHeader, encode_frame
+from slamtka.service.frames import Frame, FrameError, FrameHeader, encode_frame
 from slamtka.service.pipeline import Pipeline
 from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry
@@ -183,3 +184,10 @@ def test_results_from_the_received_header_equal_those_after_a_restart(tmp_path):
     again = restarted.run()
     assert again.folder == first.folder and len(before) == 3
     assert {p.name: p.read_bytes() for p in again.folder.glob("*.dcm")} == before
+
+
+def test_the_facts_are_every_attribute_of_a_frame_but_its_pixels():
+    names = {f.name for f in fields(Frame)} - {"pixels", "bits_stored"}
+    assert {f.name for f in fields(FrameHeader)} == names
+    frame = small_frame()
+    assert FrameHeader.from_json(json.loads(json.dumps(frame.header().to_json()))) == frame.header()
