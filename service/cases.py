@@ -3,7 +3,8 @@
 Received instances are grouped into cases by Patient ID, Study Instance UID and laterality.
 Each frame is paired, once, with the C-arm geometry (the encoder reading at its acquisition
 time, else its DICOM positioner angles); the pairing is kept in the spool beside the instance
-so a restart rebuilds every case as it was. A view is usable when its geometry is known. A
+so a restart rebuilds every case as it was. The assembler reads the facts the receiver
+decoded (:mod:`service.decoded`), never the instance itself. A view is usable when its geometry is known. A
 case is due (here, by geometry alone) as soon as it holds two usable views whose beams are at
 least ``min_view_separation_deg`` apart; the service asks the same of the views of the case's
 current pin set (:mod:`service.workflow`). Adding an instance already in the case changes
@@ -22,7 +23,6 @@ from datetime import datetime
 
 import numpy as np
 
-from slamtka.service.frames import decode_frame
 from slamtka.service.poses import ViewGeometry, ViewPairing, view_separation_deg
 from slamtka.service.spool import Spool, SpoolEntry
 
@@ -101,30 +101,30 @@ class CaseAssembler:
 
     def add(self, entry: SpoolEntry) -> tuple[Case | None, bool]:
         """Put an instance into its case: (the case, whether the pipeline is now due)."""
-        # Validated on receipt: a FrameError here means a damaged file or a changed decoder;
-        # the caller audits it (the worker) or quarantines the file (start-up recovery).
-        frame = decode_frame(self.spool.read(entry))
-        case_id = case_id_of(frame.patient_id, frame.study_uid, frame.laterality)
-        case = self.cases.setdefault(case_id, Case(case_id, frame.patient_id, frame.study_uid,
-                                                   frame.laterality))
+        # Decoded on receipt: a FrameError here means a file damaged since (or, spooled
+        # without facts, one that no longer decodes); the caller audits it (the worker) or
+        # quarantines the file (start-up recovery).
+        facts, stored = self.spool.decoded.facts(entry)
+        case_id = case_id_of(facts.patient_id, facts.study_uid, facts.laterality)
+        case = self.cases.setdefault(case_id, Case(case_id, facts.patient_id, facts.study_uid,
+                                                   facts.laterality))
         if entry.sop_instance_uid in case.views:
             return case, False
-        stored = self.spool.read_sidecar(entry)
         if stored is not None:
             pairing = ViewPairing.from_json(stored)
         else:
             taken = {v.pairing.encoder_reading["sequence"] for v in case.views.values()
                      if v.pairing.encoder_reading is not None}
-            pairing = self.geometry.pair(frame, taken)
-            self.spool.write_sidecar(entry, pairing.to_json())
-        positioner = {"primary_angle_deg": frame.primary_angle_deg,
-                      "secondary_angle_deg": frame.secondary_angle_deg,
-                      "sid_mm": frame.sid_mm, "sod_mm": frame.sod_mm}
+            pairing = self.geometry.pair(facts, taken)
+            self.spool.decoded.save_pairing(entry, facts, pairing.to_json())
+        positioner = {"primary_angle_deg": facts.primary_angle_deg,
+                      "secondary_angle_deg": facts.secondary_angle_deg,
+                      "sid_mm": facts.sid_mm, "sod_mm": facts.sod_mm}
         beam = None
         if pairing.initialisation is not None:
-            beam = self.geometry.beam_anat(pairing, frame.primary_angle_deg,
-                                           frame.secondary_angle_deg)
-        view = View(entry, frame.sop_class_uid, frame.series_uid, frame.acquisition_datetime,
+            beam = self.geometry.beam_anat(pairing, facts.primary_angle_deg,
+                                           facts.secondary_angle_deg)
+        view = View(entry, facts.sop_class_uid, facts.series_uid, facts.acquisition_datetime,
                     positioner, pairing, beam)
         case.views[entry.sop_instance_uid] = view
         if not view.usable:

@@ -17,13 +17,18 @@ Shape INVERSE) is inverted on decode so downstream code sees one convention; an 
 value outside the standard is refused by name. Uncompressed pixel data is read directly,
 compressed data through pydicom's decoders.
 Times are UTC-aware; an instance without a timezone offset is read as UTC.
+
+A :class:`FrameHeader` is a frame without its pixels: what the receiver decodes once and
+keeps beside the spooled instance (:mod:`service.decoded`), so that later stages and a
+restart read the facts back instead of decoding the header again, and decode only the
+pixels (:func:`decode_pixels`) when they need them.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from datetime import UTC, datetime, timedelta, timezone
 
 import numpy as np
@@ -37,8 +42,9 @@ from pydicom.uid import (
     generate_uid,
 )
 
-__all__ = ["Frame", "FrameError", "encode_frame", "decode_frame", "case_key", "SOP_CLASSES", "SIMULATED_SERIAL",
-           "XA_IMAGE_STORAGE", "ENHANCED_XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
+__all__ = ["Frame", "FrameHeader", "FrameError", "encode_frame", "decode_frame", "decode_pixels",
+           "case_key", "SOP_CLASSES", "SIMULATED_SERIAL", "XA_IMAGE_STORAGE",
+           "ENHANCED_XA_IMAGE_STORAGE", "RF_IMAGE_STORAGE"]
 
 XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1")
 ENHANCED_XA_IMAGE_STORAGE = UID("1.2.840.10008.5.1.4.1.1.12.1.1")
@@ -128,6 +134,56 @@ class Frame:
     @property
     def width(self) -> int:
         return int(self.pixels.shape[1])
+
+    def header(self) -> FrameHeader:
+        """The frame without its pixels."""
+        return FrameHeader(**{f.name: getattr(self, f.name) for f in fields(FrameHeader)})
+
+
+@dataclass(frozen=True)
+class FrameHeader:
+    """What a received frame says besides its pixels: every attribute of :class:`Frame`
+    but ``pixels`` and ``bits_stored`` (which come with the pixels), in JSON for the spool."""
+
+    imager_pixel_spacing_mm: tuple[float, float]
+    primary_angle_deg: float | None
+    secondary_angle_deg: float | None
+    sid_mm: float | None
+    sod_mm: float | None
+    acquisition_datetime: datetime | None
+    patient_id: str
+    patient_name: str
+    study_uid: str
+    series_uid: str
+    sop_instance_uid: str
+    sop_class_uid: str
+    laterality: str | None
+    modality: str
+    instance_number: int
+
+    def with_pixels(self, pixels: np.ndarray, bits_stored: int) -> Frame:
+        """The :class:`Frame` (validated) of these facts and decoded pixels."""
+        return Frame(pixels=pixels, bits_stored=bits_stored, **vars(self))
+
+    def to_json(self) -> dict:
+        doc = asdict(self)
+        doc["imager_pixel_spacing_mm"] = list(self.imager_pixel_spacing_mm)
+        when = self.acquisition_datetime
+        doc["acquisition_datetime"] = None if when is None else when.isoformat()
+        return doc
+
+    @staticmethod
+    def from_json(doc: dict) -> FrameHeader:
+        """The facts of :meth:`to_json`; KeyError, TypeError or ValueError when ``doc`` is
+        not such a document (a member missing, another version)."""
+        names = {f.name for f in fields(FrameHeader)}
+        if set(doc) != names:
+            raise KeyError(f"frame facts differ in {sorted(names ^ set(doc))}")
+        when = doc["acquisition_datetime"]
+        row, column = doc["imager_pixel_spacing_mm"]
+        return FrameHeader(**{**doc, "imager_pixel_spacing_mm": (float(row), float(column)),
+                              "acquisition_datetime": None if when is None
+                              else datetime.fromisoformat(when)})
 
 
 def _ds(value: float) -> str:
@@ -408,11 +464,13 @@ def _pixels(ds: Dataset) -> tuple[np.ndarray, int]:
     words = _stored_words(ds, syntax, frames, rows * columns, bits_allocated, high_bit,
                           bits_stored)
     mask = np.uint16((1 << bits_stored) - 1)
-    pixels = (words.astype(np.uint16) >> np.uint16(high_bit - bits_stored + 1)) & mask
+    pixels = words.astype(np.uint16)  # one copy, then in place: no frame-sized temporaries
+    pixels >>= np.uint16(high_bit - bits_stored + 1)
+    pixels &= mask
     if representation == 1:
         pixels ^= np.uint16(1 << (bits_stored - 1))  # two's complement to offset binary
     if inverted:
-        pixels = mask - pixels
+        np.subtract(mask, pixels, out=pixels)
     return pixels.reshape(rows, columns), bits_stored
 
 
@@ -458,6 +516,14 @@ def case_key(ds: Dataset) -> tuple[str, str, str | None]:
     return str(attrs.get("PatientID", "")), str(attrs.get("StudyInstanceUID", "")), _laterality(attrs)
 
 
+def decode_pixels(ds: Dataset) -> tuple[np.ndarray, int]:
+    """The pixels of a received instance (as in :class:`Frame`) and their bits stored, or
+    :class:`FrameError`: the part of :func:`decode_frame` an instance whose
+    :class:`FrameHeader` is known already needs."""
+    pixels, bits_stored = _pixels(ds)
+    return pixels, max(8, bits_stored)
+
+
 def decode_frame(ds: Dataset) -> Frame:
     """The :class:`Frame` of a received instance, or :class:`FrameError` saying what is wrong."""
     attrs = _first_frame_attributes(ds)
@@ -468,10 +534,9 @@ def decode_frame(ds: Dataset) -> Frame:
     modality = str(_required(attrs, "Modality"))
     if modality not in SOP_CLASSES[sop_class]:
         raise FrameError(f"Modality {modality} is not an X-ray modality for SOP class {sop_class}")
-    pixels, bits_stored = _pixels(ds)
+    pixels, bits_stored = decode_pixels(ds)
     laterality = _laterality(attrs)
-    return Frame(
-        pixels=pixels,
+    return FrameHeader(
         imager_pixel_spacing_mm=_pixel_spacing(attrs),
         primary_angle_deg=_optional_float(attrs, "PositionerPrimaryAngle", -180.0, 180.0),
         secondary_angle_deg=_optional_float(attrs, "PositionerSecondaryAngle", -180.0, 180.0),
@@ -486,6 +551,5 @@ def decode_frame(ds: Dataset) -> Frame:
         sop_class_uid=sop_class,
         laterality=laterality,
         modality=modality,
-        bits_stored=max(8, bits_stored),
         instance_number=_integer(attrs, "InstanceNumber", 1) or 1,
-    )
+    ).with_pixels(pixels, bits_stored)

@@ -35,7 +35,7 @@ from slamtka.service.cases import Case, View, run_id_of
 from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
 from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
 from slamtka.service.display import advice, change_line
-from slamtka.service.frames import Frame, decode_frame, encode_frame
+from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
 from slamtka.service.plans import PlanStore
@@ -197,9 +197,9 @@ class Pipeline:
         except ValueError:
             return
         T = self.geometry.initial_views(plan, [view.pairing], [view.positioner]).T_cam_tibia[0]
-        ds = self.spool.read(view.entry)
-        frame = decode_frame(ds)
-        calibration, _ = self.calibrations.select(ds, frame)
+        decoded = self.spool.decoded.get(view.entry)
+        frame = decoded.frame
+        calibration, _ = self.calibrations.select(decoded.header, frame)
         if calibration is not None and calibration.check_frame(frame) is None:
             self.calibration = calibration
             self._extract(plan, view, frame, T, self._planned_pins(plan))
@@ -348,11 +348,9 @@ class Pipeline:
         recorder.stage("frames", f"{len(views)} views")
         items = []
         for k, view in enumerate(views, start=1):
-            ds = self.spool.read(view.entry)
-            frame = decode_frame(ds)
-            del ds.PixelData
-            item = _ViewInput(view, f"view{k}", frame, sanitised_header(ds))
-            recorder.frame(item.view_id, frame, view.positioner)
+            decoded = self.spool.decoded.get(view.entry)
+            item = _ViewInput(view, f"view{k}", decoded.frame, sanitised_header(decoded.header))
+            recorder.frame(item.view_id, item.frame, view.positioner)
             recorder.encoder(item.view_id, view.pairing.initialisation, view.pairing.encoder_reading)
             if view.pairing.angle_check and view.pairing.angle_check.get("status") == "disagrees":
                 reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")

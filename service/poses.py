@@ -32,7 +32,7 @@ from slamtka.drivers.kinematics import (
     initial_view_poses,
 )
 from slamtka.service.clock import review_pairing
-from slamtka.service.frames import Frame
+from slamtka.service.frames import FrameHeader
 from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles
 from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
 from slamtka.solver.geometry import Pose, largest_angle_deg, look_at
@@ -113,7 +113,7 @@ class ViewGeometry:
     def setup(self, landmarks: Landmarks) -> PatientSetup:
         return PatientSetup.from_config(landmarks, self.setup_config)
 
-    def pair(self, frame: Frame, taken: set[int] = frozenset()) -> ViewPairing:
+    def pair(self, frame: FrameHeader, taken: set[int] = frozenset()) -> ViewPairing:
         """The encoder reading at the frame's acquisition time, else its positioner angles.
 
         ``taken``: sequence numbers of the readings other views of the case were paired

@@ -9,10 +9,12 @@ Connections, PDUs and message sizes are policed at the byte level by :mod:`servi
 before pynetdicom sees them. The C-STORE handler only
 validates, persists and queues: it checks the command (UIDs), the dataset's byte structure
 (:mod:`service.dataset_guard`, before pydicom parses it), then the instance (SOP class
-against the negotiated context, UIDs, transfer syntax, image attributes and pixel data length
-through :func:`service.frames.decode_frame`), writes it to the spool (fsynced) and appends
-an audit line before the success status goes back; a refused instance gets a failure status
-with the reason in the Error Comment and an audit line. The pipeline runs elsewhere.
+against the negotiated context, UIDs, transfer syntax), decodes it (image attributes and
+pixel data through :func:`service.frames.decode_frame`: the only time it is decoded,
+:mod:`service.decoded`), writes it to the spool with the decoded facts beside it (fsynced)
+and appends an audit line before the success status goes back; the decoded frame is then
+handed to the worker in memory. A refused instance gets a failure status with the reason in
+the Error Comment and an audit line. The pipeline runs elsewhere.
 
 Storage robustness: at most ``dicom.max_frames_in_memory`` instances are decoded and spooled
 at once (others wait up to ``dicom.memory_wait_s``, then get 0xA700, audited), so a burst of
@@ -55,7 +57,7 @@ from pynetdicom.sop_class import (
 from slamtka.service.audit import AuditLog
 from slamtka.service.config import DicomConfig
 from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
-from slamtka.service.frames import FrameError, decode_frame
+from slamtka.service.frames import Frame, FrameError, decode_frame
 from slamtka.service.spool import Spool, SpoolEntry
 from slamtka.service.tls import server_ssl_context
 from slamtka.service.wire import GuardedServer, WireLimits
@@ -85,7 +87,7 @@ _TRANSFER_SYNTAX_NOT_SUPPORTED = 0x04  # presentation context result (PS3.8 9.3.
 
 def check_instance(ds: Dataset, context_sop_class: str, transfer_syntax: str,
                    affected_sop_instance_uid: str) -> tuple[int, str] | None:
-    """(failure status, reason) if the instance must be refused, else None."""
+    """(failure status, reason) if the instance must be refused before it is decoded, else None."""
     if transfer_syntax not in TRANSFER_SYNTAXES:
         return STATUS_CANNOT_UNDERSTAND, f"transfer syntax {transfer_syntax} is not accepted"
     sop_class = str(ds.get("SOPClassUID", "") or "")
@@ -100,10 +102,6 @@ def check_instance(ds: Dataset, context_sop_class: str, transfer_syntax: str,
             return STATUS_CANNOT_UNDERSTAND, f"{keyword} is not a valid UID"
     if str(ds.SOPInstanceUID) != str(affected_sop_instance_uid):
         return STATUS_CANNOT_UNDERSTAND, "SOPInstanceUID differs from the C-STORE request"
-    try:
-        decode_frame(ds)
-    except FrameError as exc:
-        return STATUS_CANNOT_UNDERSTAND, str(exc)
     return None
 
 
@@ -236,6 +234,7 @@ class DicomReceiver:
         refusal = check_command(event.request, context.abstract_syntax)
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
+        frame: Frame | None = None
         try:
             syntax = UID(context.transfer_syntax)
             check_dataset_bytes(event.request.DataSet.getvalue(), not syntax.is_implicit_VR,
@@ -246,14 +245,19 @@ class DicomReceiver:
             ds.file_meta.SourceApplicationEntityTitle = peer["calling_ae"]
             refusal = check_instance(ds, context.abstract_syntax, context.transfer_syntax,
                                      request_uid)
+            if refusal is None:
+                frame = decode_frame(ds)
         except DatasetError as exc:
             refusal = STATUS_CANNOT_UNDERSTAND, f"malformed dataset: {exc}"
+        except FrameError as exc:
+            refusal = STATUS_CANNOT_UNDERSTAND, str(exc)
         except Exception as exc:  # pydicom raises many types on values it cannot convert
             refusal = STATUS_CANNOT_UNDERSTAND, f"dataset cannot be decoded: {exc}"
         if refusal is not None:
             return self._refuse(peer, request_uid, *refusal)
+        assert frame is not None  # decoded whenever nothing was refused
         try:
-            entry, outcome = self.spool.store(ds)
+            entry, outcome = self.spool.store(ds, frame.header())
         except OSError as exc:
             log.error("cannot spool %s: %s", request_uid, exc)
             return self._refuse(peer, request_uid, STATUS_OUT_OF_RESOURCES,
@@ -273,6 +277,8 @@ class DicomReceiver:
                 self.spool.discard(entry)
             return _status(STATUS_OUT_OF_RESOURCES, f"cannot write the audit log: {exc.strerror}")
         if outcome == "new":
+            del ds.PixelData  # decoded into the frame; the header is what the stages repeat
+            self.spool.decoded.keep(entry, frame, ds)
             self.on_stored(entry)
         elif outcome == "conflict":
             log.warning("refused instance %s from %s: %s", request_uid, peer["calling_ae"], comment)

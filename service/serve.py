@@ -1,7 +1,8 @@
 """``slamtka serve --config FILE``: the long-running service.
 
-Threads: pynetdicom's association threads receive, validate, spool and queue instances
-(:mod:`service.scp`); one worker assembles cases and runs the pipeline (so the network side
+Threads: pynetdicom's association threads receive, validate (decode), spool and queue
+instances (:mod:`service.scp`; the decoded frame is handed over in memory,
+:mod:`service.decoded`); one worker assembles cases and runs the pipeline (so the network side
 never waits for the solver); the sender delivers results (:mod:`service.sender`); the
 encoder link reads the C-arm (``drivers``); the status board keeps ``status.json`` fresh.
 
@@ -261,7 +262,7 @@ class Service:
                 moved.append(self.spool.quarantine(entry.sidecar, f"sidecar unreadable: {exc}"))
             try:
                 self.assembler.add(entry)
-            except Exception as exc:  # truncated pixels, an unusable frame: moved aside
+            except Exception as exc:  # not the size received, an unusable frame: moved aside
                 moved.append(self.spool.quarantine(entry.path, f"{type(exc).__name__}: {exc}"))
         for item in moved:
             log.error("quarantined spool file %s: %s", item["file"], item["reason"])

@@ -6,10 +6,13 @@ the untrusted value itself), and the directory is fsynced: only then is the C-ST
 acknowledged. Linking refuses to replace an existing file, so a re-sent instance is detected
 atomically and the first copy is kept (processing is idempotent by SOP Instance UID).
 
-Beside each instance the case assembler keeps a small JSON sidecar (how the frame was
-paired with the C-arm's encoders), written the same crash-safe way, so a restart re-builds
-every case exactly as it was. A crash can leave only temporary files (``.tmp-*``) behind,
-never a partial instance (:mod:`slamtka.service.atomic_files`).
+Beside each instance a small JSON sidecar, written the same crash-safe way, keeps the facts
+the receiver decoded (:mod:`slamtka.service.decoded`, written with the instance, before the
+acknowledgement) and how the case assembler paired the frame with the C-arm's encoders, so
+a restart re-builds every case exactly as it was without decoding the instances again. A
+crash can leave only temporary files (``.tmp-*``) behind, never a partial instance
+(:mod:`slamtka.service.atomic_files`); one between the instance and its sidecar leaves an
+instance without facts, which is decoded once more at the next start.
 
 A re-sent SOP Instance UID is compared with the spooled copy: the same image is a duplicate,
 another image under the same UID (other patient, other pixels) a conflict the caller refuses.
@@ -31,6 +34,8 @@ import pydicom
 from pydicom.dataset import Dataset
 
 from slamtka.service.atomic_files import _fsync_dir, write_atomic, write_json_atomic
+from slamtka.service.decoded import DecodedFrames, sidecar_of
+from slamtka.service.frames import FrameHeader
 
 __all__ = ["Spool", "SpoolEntry", "entry_id", "content_digest"]
 
@@ -73,15 +78,23 @@ class Spool:
         self.root = Path(root)
         self.instances = self.root / "instances"
         self.instances.mkdir(parents=True, exist_ok=True)
+        self.decoded = DecodedFrames(self)
 
-    def store(self, ds: Dataset) -> tuple[SpoolEntry, StoreOutcome]:
-        """Persist ``ds`` (with its file meta) unless its UID is spooled already; then say
-        whether the spooled copy is the same image (``duplicate``) or not (``conflict``)."""
+    def store(self, ds: Dataset, facts: FrameHeader | None = None) -> tuple[SpoolEntry, StoreOutcome]:
+        """Persist ``ds`` (with its file meta) unless its UID is spooled already, and beside
+        a new one its decoded ``facts``; then say whether the spooled copy is the same image
+        (``duplicate``) or not (``conflict``). OSError: nothing new is left spooled."""
         uid = str(ds.SOPInstanceUID)
         buffer = io.BytesIO()
         ds.save_as(buffer, enforce_file_format=True)
-        entry = self.entry(uid)
-        if write_atomic(entry.path, buffer.getvalue(), replace=False):
+        data, entry = buffer.getvalue(), self.entry(uid)
+        if write_atomic(entry.path, data, replace=False):
+            if facts is not None:
+                try:
+                    self.write_sidecar(entry, sidecar_of(facts, len(data)))
+                except OSError:
+                    self.discard(entry)
+                    raise
             return entry, "new"
         try:
             same = content_digest(self.read(entry)) == content_digest(ds)

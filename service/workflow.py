@@ -27,7 +27,6 @@ from slamtka.service.atomic_files import write_atomic, write_json_atomic
 from slamtka.service.audit import AuditLog
 from slamtka.service.cases import Case, View, run_id_of
 from slamtka.service.display import Status, build_status_objects
-from slamtka.service.frames import decode_frame
 from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import (
     MIN_PIN_THRESHOLD_PX,
@@ -312,12 +311,10 @@ class Workflow:
             from slamtka.service.pipeline import result_uid  # the pipeline module is loaded by then
             from slamtka.solver.result import software_version
 
-            ds = self.pipeline.spool.read(view.entry)
-            pixels = decode_frame(ds).pixels
-            del ds.PixelData
+            decoded = self.pipeline.spool.decoded.get(view.entry)
             when = view.acquisition_datetime or datetime(1970, 1, 1, tzinfo=UTC)
             sr, sc = build_status_objects(
-                sanitised_header(ds), pixels, status, laterality=case.laterality,
+                sanitised_header(decoded.header), decoded.frame.pixels, status, laterality=case.laterality,
                 version=software_version(), when=when, institution=self.institution,
                 uid_for=lambda what: result_uid(case.case_id, run_id, what))
             folder = self.pipeline.output_root / case.case_id / run_id

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import datetime as dt
 import socket
+import sys
+from collections import Counter
 
 import numpy as np
 
 from slamtka.bench.pki import make_pki
+from slamtka.service import frames
 from slamtka.service.frames import Frame
 
-__all__ = ["free_port", "small_frame", "make_pki"]
+__all__ = ["free_port", "small_frame", "make_pki", "count_decoding"]
 
 
 def free_port() -> int:
@@ -29,3 +32,21 @@ def small_frame(**changes) -> Frame:
                   patient_name="Doe^Jane", laterality="R", bits_stored=12)
     fields.update(changes)
     return Frame(**fields)
+
+
+def count_decoding(monkeypatch) -> Counter:
+    """Count calls of ``decode_frame`` and ``decode_pixels`` (the pixel-only read, which
+    ``decode_frame`` also calls) wherever a loaded slamtka module holds them."""
+    calls: Counter = Counter()
+    for name in ("decode_frame", "decode_pixels"):
+        original = getattr(frames, name)
+
+        def counted(*args, _name=name, _original=original, **kwargs):
+            calls[_name] += 1
+            return _original(*args, **kwargs)
+
+        for module in list(sys.modules.values()):
+            if (getattr(module, "__name__", "").startswith("slamtka.")
+                    and getattr(module, name, None) is original):
+                monkeypatch.setattr(module, name, counted)
+    return calls

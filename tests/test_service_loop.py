@@ -17,12 +17,13 @@ from dataclasses import replace
 import numpy as np
 import pydicom
 import pytest
-from service_testing import small_frame
+from service_testing import count_decoding, small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics
 from slamtka.service.audit import AuditLog, read_audit
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.config import SenderConfig
+from slamtka.service.decoded import DecodedFrames
 from slamtka.service.dicom_sc import ScOverlay, build_sc, render_overlay, wrap_text
 from slamtka.service.dicom_sr import build_sr
 from slamtka.service.frames import encode_frame
@@ -176,6 +177,7 @@ def test_a_repeated_run_rebuilds_identical_dicom_objects(rendered, tmp_path):
     before = {p.name: p.read_bytes() for p in folder.glob("*.dcm")}
     (folder / "result.json").unlink()  # a crash before the run completed
     loop.pipeline._extracted.clear()  # a new process: nothing cached
+    loop.spool.decoded = DecodedFrames(loop.spool)
     again = loop.run(c)
     assert again.doc["run_id"] == outcome.doc["run_id"]
     after = {p.name: p.read_bytes() for p in folder.glob("*.dcm")}
@@ -186,6 +188,33 @@ def test_a_repeated_run_rebuilds_identical_dicom_objects(rendered, tmp_path):
         loop.workflow.store.get(c.case_id).sets[0].runs[0]["triggered"])
     assert sr.ContentDate == triggered.strftime("%Y%m%d")
     assert sr.InstanceCreationTime == triggered.strftime("%H%M%S.%f")
+
+
+def test_a_spool_from_before_decoding_once_starts_and_is_measured(rendered, tmp_path,
+                                                                   monkeypatch):
+    """Sidecars holding the pairing alone, as before the decoded facts were kept: each
+    instance is decoded once more, its sidecar rewritten (pairing kept), the case measured."""
+    th, calibration, case, _, _ = rendered
+    spool = Spool(tmp_path / "spool")
+    geometry = ViewGeometry(CArmKinematics(), {}, None, 0.1, 3.0)
+    pairings = {}
+    for k, frame in enumerate(case.frames[:2]):
+        frame = replace(frame, acquisition_datetime=_WHEN + dt.timedelta(minutes=k))
+        entry, _ = spool.store(encode_frame(frame))
+        pairings[entry.sidecar.name] = geometry.pair(frame.header()).to_json()
+        spool.write_sidecar(entry, pairings[entry.sidecar.name])
+    calls = count_decoding(monkeypatch)
+    loop = Loop(tmp_path, th, calibration)  # the service started on the old spool
+    for entry in loop.spool.entries():
+        c, _ = loop.assembler.add(entry)
+        due = loop.workflow.place(c, c.views[entry.sop_instance_uid])
+    assert due
+    doc = loop.run(c).doc
+    assert doc["status"] == "measured", doc["reasons"]
+    assert calls == {"decode_frame": 2, "decode_pixels": 2}  # once each, pixels included
+    for name, pairing in pairings.items():
+        sidecar = json.loads((tmp_path / "spool" / "instances" / name).read_text())
+        assert sidecar["pairing"] == pairing and "frame" in sidecar
 
 
 @pytest.mark.parametrize("attribute,value", [
