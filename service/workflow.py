@@ -287,14 +287,15 @@ class Workflow:
                 path.unlink(missing_ok=True)
                 continue
             case = cases.get(case_id)
-            self.audit.record("operator_request", kind=kind, case_id=case_id, who=who,
-                              known_case=case is not None)
             if case is not None and kind == "new-set":
                 sets = self.store.get(case_id)
                 sets.new_set_requested = who or "operator"
                 self.store.save(sets)
             elif case is not None and kind == "rerun":
                 out.append((case, "rerun"))
+            # Audited once in effect: whoever reads the audit line finds the new set saved.
+            self.audit.record("operator_request", kind=kind, case_id=case_id, who=who,
+                              known_case=case is not None)
             path.unlink(missing_ok=True)
         return out
 

@@ -436,7 +436,7 @@ _PIN_PEAK_SHARE = 0.5  # of the strongest bar's peak excess, that another bar mu
 # 10% (the pose's depth error): a pin's is within these shares of it, two pins side by
 # side at most the last. A retractor blade seen edge-on (2 mm) or a strip of a face-on
 # blade is as straight as a pin but rarely as wide.
-_EXPECTED_WIDTH_SHARES = (0.65, 1.35, 2.1)
+_EXPECTED_WIDTH_SHARES = (0.65, 1.5, 2.1)
 
 
 @dataclass(frozen=True)
@@ -573,8 +573,9 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
                widths: _PinWidths, config: ContourConfig
                ) -> tuple[list[_Bar], str, np.ndarray] | None:
     """When no two shadows are the pins, the one that holds both: of the largest, the first
-    that splits into two bars each of one pin's width (a strip of a retractor blade does
-    not), with its bars, how they overlap and its edge points; None if none does."""
+    that splits into two bars no wider than a pin on average (a strip of a retractor blade
+    does not; a split's bars come out uneven where pin heads add steps to its sides), with
+    its bars, how they overlap and its edge points; None if none does."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
     for shadow in shadows[:_SPLIT_TRIED]:
@@ -583,7 +584,7 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
-        if all(widths.one_pin(_edge_width(bar, edges[mine])) for bar in bars):
+        if np.mean([_edge_width(bar, edges[mine]) for bar in bars]) <= widths.most:
             return bars, overlap, edges[mine]
     return None
 
