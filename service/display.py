@@ -24,7 +24,7 @@ from pydicom.dataset import Dataset
 from slamtka.service.refusals import RefusalCode
 from slamtka.solver.gates import Why
 
-if TYPE_CHECKING:  # jsonschema and the solver: not for `slamtka status` (see below)
+if TYPE_CHECKING:  # annotations only: a status needs no result
     from slamtka.service.results import MeasurementResult, PreviousMeasurement
 
 __all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",

@@ -210,7 +210,7 @@ class MeasurementResult:
                   dicom_error: str | None = None) -> MeasurementResult:
         """This result with the run's final timings and why its DICOM results failed, if they
         did: all that is only known after the SR and SCs were built from it. Not validated
-        again: the schema asks no more of these members than their types give."""
+        again: the run's own clock readings and a sentence are all the schema asks of them."""
         return replace(self, timings=dict(timings),
                        outputs=replace(self.outputs, dicom_error=dicom_error))
 
