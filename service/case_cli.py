@@ -16,6 +16,7 @@ from pathlib import Path
 
 from slamtka.service.config import load_config
 from slamtka.service.pinsets import CasePinSets, PinSetStore
+from slamtka.service.results import MeasurementResult
 from slamtka.service.workflow import write_request
 
 __all__ = ["add_case_parser"]
@@ -69,11 +70,11 @@ def cmd_show(args: argparse.Namespace) -> int:
         for uid in s.views:
             print(f"    view {uid}")
         for run in s.runs:
-            result = config.output / c.case_id / run["run_id"] / "result.json"
+            path = config.output / c.case_id / run["run_id"] / "result.json"
             reason = ""
-            if result.is_file():
-                doc = json.loads(result.read_text())
-                reason = f" ({doc['reason']})" if doc.get("reason") else ""
+            if path.is_file():
+                result = MeasurementResult.from_document(json.loads(path.read_text()))
+                reason = f" ({result.reason})" if result.reason else ""
             print(f"    measurement {run['number']} (run {run['run_id']}, {run['triggered']}): "
                   f"{_angles(run)}{reason}")
     for uid, why in c.left_out.items():

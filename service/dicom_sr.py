@@ -38,8 +38,9 @@ from pydicom.sr.coding import Code
 from pydicom.uid import generate_uid
 
 from slamtka.service.headers import stamp_dates
+from slamtka.solver.result import Angles, Deviation
 
-__all__ = ["SrGeometry", "build_sr", "tibia_frame_of_reference_uid", "CODES", "SR_SERIES_NUMBER"]
+__all__ = ["SrGeometry", "SrMeasurement", "build_sr", "tibia_frame_of_reference_uid", "CODES", "SR_SERIES_NUMBER"]
 
 SCHEME = "99SLAMTKA"
 SR_SERIES_NUMBER = 9701
@@ -80,6 +81,16 @@ class SrGeometry:
     side: str
 
 
+@dataclass(frozen=True)
+class SrMeasurement:
+    """What a measured report states: the result's angles and their deviation from the plan,
+    with the 3D content they were measured on."""
+
+    angles: Angles
+    deviation: Deviation
+    geometry: SrGeometry
+
+
 def tibia_frame_of_reference_uid(bone_mesh_sha256: str) -> str:
     """The Frame of Reference of a plan's tibia mesh: stable for the same mesh."""
     return generate_uid(entropy_srcs=["slamtka tibia frame", bone_mesh_sha256])
@@ -91,32 +102,32 @@ def _measurement(name: Code, value: float, derivation: Code | None = None,
                              referenced_coordinates=None if coordinates is None else [coordinates])
 
 
-def _groups(doc: dict, geometry: SrGeometry | None, algorithm: hd.sr.AlgorithmIdentification,
+def _groups(measured: SrMeasurement | None, algorithm: hd.sr.AlgorithmIdentification,
             site: hd.sr.FindingSite, uid_for: Callable[[str], str]) -> list:
     tracking = lambda text: hd.sr.TrackingIdentifier(  # noqa: E731
         uid=uid_for(f"tracking/{text}"), identifier=text)
-    if doc["status"] != "measured" or geometry is None:
+    if measured is None:
         return [hd.sr.MeasurementsAndQualitativeEvaluations(
             tracking_identifier=tracking("Resection plane"), finding_type=CODES["plane"],
             algorithm_id=algorithm, finding_sites=[site],
             qualitative_evaluations=[hd.sr.QualitativeEvaluation(CODES["status"],
                                                                  CODES["not_measured"])])]
-    a, d = doc["angles"], doc["deviation"]
+    a, d, geometry = measured.angles, measured.deviation, measured.geometry
     region = hd.sr.ImageRegion3D(graphic_type=hd.sr.GraphicTypeValues3D.POLYGON,
                                  graphic_data=np.asarray(geometry.plane_polygon, float),
                                  frame_of_reference_uid=geometry.frame_of_reference_uid)
     plane = hd.sr.PlanarROIMeasurementsAndQualitativeEvaluations(
         tracking_identifier=tracking("Resection plane"), referenced_region=region,
         finding_type=CODES["plane"], algorithm_id=algorithm, finding_sites=[site],
-        measurements=[_measurement(CODES["ctr"], a["ctr_deg"]),
-                      _measurement(CODES["str"], a["str_deg"]),
-                      _measurement(CODES["ctr"], a["ctr_sigma_deg"], _SD),
-                      _measurement(CODES["str"], a["str_sigma_deg"], _SD),
-                      _measurement(CODES["ctr_dev"], d["ctr_deg"]),
-                      _measurement(CODES["str_dev"], d["str_deg"])],
+        measurements=[_measurement(CODES["ctr"], a.ctr_deg),
+                      _measurement(CODES["str"], a.str_deg),
+                      _measurement(CODES["ctr"], a.ctr_sigma_deg, _SD),
+                      _measurement(CODES["str"], a.str_sigma_deg, _SD),
+                      _measurement(CODES["ctr_dev"], d.ctr_deg),
+                      _measurement(CODES["str_dev"], d.str_deg)],
         qualitative_evaluations=[
             hd.sr.QualitativeEvaluation(CODES["status"], CODES["measured"]),
-            hd.sr.QualitativeEvaluation(CODES["within"], _YES if d["within_tolerance"] else _NO)])
+            hd.sr.QualitativeEvaluation(CODES["within"], _YES if d.within_tolerance else _NO)])
     pins = []
     for k, (axis, angle) in enumerate(zip(geometry.pin_axes, geometry.pin_angles_deg), start=1):
         coords = hd.sr.CoordinatesForMeasurement3D(
@@ -129,22 +140,21 @@ def _groups(doc: dict, geometry: SrGeometry | None, algorithm: hd.sr.AlgorithmId
     return [plane, *pins]
 
 
-def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
-             series_uid: str, sop_instance_uid: str, uid_for: Callable[[str], str],
+def build_sr(evidence: list[Dataset], measured: SrMeasurement | None, *, side: str | None,
+             version: str, series_uid: str, sop_instance_uid: str, uid_for: Callable[[str], str],
              content_datetime: datetime, notes: Sequence[tuple[str, str]] = (),
              manufacturer: str = "slamtka", institution: str = "",
              device_name: str = "SLAMTKA", series_number: int = SR_SERIES_NUMBER,
              series_description: str = "slamtka resection plane") -> Dataset:
-    """The Comprehensive 3D SR of result ``doc``, in the study of the ``evidence`` frames
-    (their headers already sanitised, :mod:`service.headers`).
+    """The Comprehensive 3D SR of a result, in the study of the ``evidence`` frames (their
+    headers already sanitised, :mod:`service.headers`): ``measured`` states the plane, or
+    None reports "not measured".
 
+    ``side`` (left, right or None) is the tibia's; ``version`` the software's;
     ``uid_for(what)`` gives the run's UID for ``what`` (tracking identifiers);
     ``notes``: (key of :data:`CODES`, text) pairs added as TEXT items to the report."""
-    side = doc["inputs"]["plan"]["side"] if doc.get("inputs") else (
-        {"L": "left", "R": "right"}.get(doc["case"]["laterality"] or "", None))
     site = hd.sr.FindingSite(anatomic_location=_TIBIA,
                              laterality=_LATERALITY.get(side) if side else None)
-    version = doc["software"]["version"]
     algorithm = hd.sr.AlgorithmIdentification(name="slamtka", version=version)
     observer = hd.sr.ObserverContext(
         observer_type=codes.DCM.Device,
@@ -154,7 +164,7 @@ def build_sr(doc: dict, evidence: list[Dataset], geometry: SrGeometry | None, *,
     report = hd.sr.MeasurementReport(
         observation_context=hd.sr.ObservationContext(observer_device_context=observer),
         procedure_reported=_PROCEDURE,
-        imaging_measurements=_groups(doc, geometry, algorithm, site, uid_for))
+        imaging_measurements=_groups(measured, algorithm, site, uid_for))
     content = report[0]
     for key, text in notes:
         content.ContentSequence.append(hd.sr.TextContentItem(

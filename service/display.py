@@ -16,12 +16,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydicom.dataset import Dataset
 
 from slamtka.service.refusals import RefusalCode
 from slamtka.solver.gates import Why
+
+if TYPE_CHECKING:  # annotations only: a status needs no result
+    from slamtka.service.results import MeasurementResult, PreviousMeasurement
 
 __all__ = ["Status", "advice", "change_line", "build_status_objects", "STATUS_SERIES",
            "STATUS_SERIES_NUMBER"]
@@ -58,18 +62,20 @@ def advice(code: str, min_separation_deg: float) -> str:
     return "take a new pair of views; if it persists, measure by hand"
 
 
-def change_line(previous: dict | None, doc: dict) -> str | None:
+def change_line(previous: PreviousMeasurement | None, result: MeasurementResult) -> str | None:
     """``"STR 6.7 -> 5.1, now within +-3"``: the change since the previous measurement."""
-    if not previous or previous.get("ctr_deg") is None or doc.get("angles") is None:
+    a, t, d = result.angles, result.target, result.deviation
+    if (previous is None or previous.ctr_deg is None or previous.str_deg is None
+            or a is None or t is None or d is None):
         return None
-    a, t, d = doc["angles"], doc["target"], doc["deviation"]
-    parts = [f"{name} {previous[f'{key}_deg']:+.1f} -> {a[f'{key}_deg']:+.1f}"
-             for name, key in (("CTR", "ctr"), ("STR", "str"))
-             if abs(previous[f"{key}_deg"] - a[f"{key}_deg"]) >= 0.05]
-    verdict = "within" if d["within_tolerance"] else "outside"
-    was = "within" if previous["verdict"] == "pass" else "outside"
+    parts = [f"{name} {before:+.1f} -> {now:+.1f}"
+             for name, before, now in (("CTR", previous.ctr_deg, a.ctr_deg),
+                                       ("STR", previous.str_deg, a.str_deg))
+             if abs(before - now) >= 0.05]
+    verdict = "within" if d.within_tolerance else "outside"
+    was = "within" if previous.verdict == "pass" else "outside"
     change = ", ".join(parts) or "angles unchanged"
-    return (f"{change}, now {verdict} +-{t['tolerance_deg']:.0f}"
+    return (f"{change}, now {verdict} +-{t.tolerance_deg:.0f}"
             + ("" if verdict == was else f" (was {was})"))
 
 
@@ -80,10 +86,10 @@ def build_status_objects(header: Dataset, pixels: np.ndarray | None, status: Sta
     ``uid_for(what)`` names every UID, ``pixels`` is the view to draw on (blank when None)."""
     from slamtka.service.dicom_sc import ScOverlay, build_sc, render_overlay  # highdicom, OpenCV: not for
     from slamtka.service.dicom_sr import build_sr  # `slamtka status`, which imports this module's neighbours
+    from slamtka.service.plans import LATERALITY_TO_SIDE
 
-    doc = {"status": "not_measured", "reason": status.message, "inputs": None,
-           "software": {"version": version}, "case": {"laterality": laterality}}
-    sr = build_sr(doc, [header], None, series_uid=uid_for("sr-series"),
+    sr = build_sr([header], None, side=LATERALITY_TO_SIDE.get(laterality or ""),
+                  version=version, series_uid=uid_for("sr-series"),
                   sop_instance_uid=uid_for("sr"), uid_for=uid_for, content_datetime=when,
                   institution=institution, series_number=STATUS_SERIES_NUMBER,
                   series_description=STATUS_SERIES,

@@ -154,13 +154,13 @@ def run_measure(args: argparse.Namespace) -> int:
     (case,) = cases.values()
     pipeline = Pipeline(spool, store, calibration, geometry, args.out)
     outcome = pipeline.run(case, case.selection(pipeline_config.max_views))
-    doc = outcome.doc
-    if doc["status"] == "measured":
-        a = doc["angles"]
-        print(f"measured: CTR {a['ctr_deg']:+.2f} deg, STR {a['str_deg']:+.2f} deg; "
+    result = outcome.result
+    if result.angles is not None:
+        a = result.angles
+        print(f"measured: CTR {a.ctr_deg:+.2f} deg, STR {a.str_deg:+.2f} deg; "
               f"results in {outcome.folder}")
         return 0
-    print(f"not measured: {doc['reason']}; results in {outcome.folder}")
+    print(f"not measured: {result.reason}; results in {outcome.folder}")
     return 3
 
 

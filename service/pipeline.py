@@ -33,7 +33,12 @@ from slamtka.service.atomic_files import remove_partial, write_atomic, write_jso
 from slamtka.service.calibrations import CalibrationSet, choose_for_run
 from slamtka.service.cases import Case, View, run_id_of
 from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
-from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from slamtka.service.dicom_sr import (
+    SrGeometry,
+    SrMeasurement,
+    build_sr,
+    tibia_frame_of_reference_uid,
+)
 from slamtka.service.display import advice, change_line
 from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.headers import sanitised_header
@@ -42,7 +47,7 @@ from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.refusals import Refusal, RefusalCode
-from slamtka.service.results import build_result, validate_result
+from slamtka.service.results import MeasurementResult, build_result
 from slamtka.service.sender import OutgoingObject
 from slamtka.service.spool import Spool
 from slamtka.solver import kernels
@@ -73,7 +78,7 @@ _SOLVER_CONFIG = SolverConfig()
 
 @dataclass
 class RunOutcome:
-    doc: dict
+    result: MeasurementResult
     folder: Path
     objects: list[OutgoingObject]
 
@@ -135,10 +140,8 @@ class Pipeline:
         kernels.warm_up()
         source = encode_frame(Frame(np.zeros((8, 8), np.uint16), (0.2, 0.2), patient_id="WARMUP",
                                     acquisition_datetime=datetime.now(UTC)))
-        doc = {"status": "not_measured", "software": {"version": "warm-up"}, "inputs": None,
-               "case": {"laterality": None}}
         now = datetime.now(UTC)
-        build_sr(doc, [source], None, series_uid=generate_uid(prefix=None),
+        build_sr([source], None, side=None, version="warm-up", series_uid=generate_uid(prefix=None),
                  sop_instance_uid=generate_uid(prefix=None), content_datetime=now,
                  uid_for=lambda what: generate_uid(prefix=None))
         build_sc(source, np.zeros((8, 8, 3), np.uint8), series_uid=generate_uid(prefix=None),
@@ -308,7 +311,7 @@ class Pipeline:
         if measurement is not None and outcome is not None and outcome.status == "measured":
             measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
                 plan, outcome, observations)}
-        doc = build_result(
+        result = build_result(
             case_id=case.case_id, run_id=run_id,
             case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
                   "laterality": case.laterality},
@@ -322,26 +325,28 @@ class Pipeline:
                      "sr_sop_instance_uid": uids["sr"],
                      "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
             measurement=measurement)
+        dicom_error = None
         try:
-            built = self._build_dicom(doc, items, plan, outcome, observations, uids, when,
+            built = self._build_dicom(result, items, plan, outcome, observations, uids, when,
                                       min_separation_deg)
             objects = [self._save(ds, folder / name, kind, sop_class)
                        for ds, name, kind, sop_class in built]
         except Exception as exc:  # values that passed receipt must not cost the result
             log.exception("case %s run %s: building the DICOM results failed", case.case_id,
                           run_id)
-            doc["outputs"]["dicom_error"] = f"{type(exc).__name__}: {exc}"[:500]
+            dicom_error = f"{type(exc).__name__}: {exc}"[:500]
             objects = []
         for obj in objects:  # every object built and on disk before any is sent
             on_output(obj)
         lap("results")
         timings["total_s"] = time.perf_counter() - started
-        validate_result(doc)
+        result = result.completed(timings, dicom_error)
+        doc = result.to_document()
         recorder.result(doc)
-        if doc["angles"] is not None:
-            recorder.angles(doc["angles"]["ctr_deg"], doc["angles"]["str_deg"])
+        if result.angles is not None:
+            recorder.angles(result.angles.ctr_deg, result.angles.str_deg)
         write_json_atomic(folder / "result.json", doc)  # last: marks the run complete
-        return RunOutcome(doc, folder, objects)
+        return RunOutcome(result, folder, objects)
 
     def _frames(self, views: list[View], recorder: CaseRecorder,
                 reasons: list[str]) -> list[_ViewInput]:
@@ -477,37 +482,38 @@ class Pipeline:
         return out
 
     # -- DICOM results --------------------------------------------------------------------
-    def _build_dicom(self, doc: dict, items: list[_ViewInput], plan: Plan | None,
+    def _build_dicom(self, result: MeasurementResult, items: list[_ViewInput], plan: Plan | None,
                      outcome: SolveOutcome | None, observations: list[ViewObservation],
                      uids: dict, when: datetime, min_separation_deg: float
                      ) -> list[tuple[Dataset, str, str, str]]:
         """The run's SR and SCs, built in memory: (dataset, file name, kind, SOP class)."""
-        measured = doc["status"] == "measured"
-        geometry = None
+        measured = None
         posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
-        if measured:
+        if result.measured:
             pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
             axis = plan.landmarks.T_tibia_anat().R[:, 2]
             angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
                       for T in outcome.T_tibia_pin]
-            geometry = SrGeometry(
-                tibia_frame_of_reference_uid(doc["inputs"]["plan"]["bone_mesh_sha256"]),
+            measured = SrMeasurement(result.angles, result.deviation, SrGeometry(
+                tibia_frame_of_reference_uid(result.bone_mesh_sha256),
                 plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
-                plan.side)
-        notes = self._notes(doc, min_separation_deg)
-        sr = build_sr(doc, [i.header for i in items], geometry, series_uid=uids["sr-series"],
+                plan.side))
+        notes = self._notes(result, min_separation_deg)
+        sr = build_sr([i.header for i in items], measured, side=result.side,
+                      version=result.software_version, series_uid=uids["sr-series"],
                       sop_instance_uid=uids["sr"], institution=self.institution,
-                      uid_for=lambda what: result_uid(doc["case_id"], doc["run_id"], what),
+                      uid_for=lambda what: result_uid(result.case_id, result.run_id, what),
                       content_datetime=when, notes=notes)
         built = [(sr, "sr.dcm", "sr", _SR_CLASS)]
-        text = self._summary_lines(doc, min_separation_deg)
+        text = self._summary_lines(result, min_separation_deg)
+        within = None if result.deviation is None else result.deviation.within_tolerance
         for n, item in enumerate(items, start=1):
             overlay = ScOverlay(item.contours.as_dict() if item.contours else {}, text=text,
-                                within_tolerance=(doc["deviation"] or {}).get("within_tolerance"))
+                                within_tolerance=within)
             T = posed.get(item.view_id)
             orientation = None
             if T is not None and plan is not None:
-                if measured:
+                if measured is not None:
                     overlay.plane_px = self._project(T, plane_polygon(outcome.plane.point,
                                                                       outcome.plane.normal))
                 overlay.pin_axes_px = [self._project(T, pin_axis_points(P, plan.pin_length())[[0, -1]])
@@ -532,22 +538,22 @@ class Pipeline:
                          for o, T in zip(observations, outcome.T_cam_tibia)), 3)
 
     @staticmethod
-    def _notes(doc: dict, min_separation_deg: float) -> list[tuple[str, str]]:
+    def _notes(result: MeasurementResult, min_separation_deg: float) -> list[tuple[str, str]]:
         """The SR's notes in words: why not measured and what to do; the measurement history."""
         notes = []
-        if doc["status"] != "measured":
-            notes += [("reason", doc["reason"]),
-                      ("action", advice(_refusal_code(doc), min_separation_deg))]
-        m = doc.get("measurement")
+        if not result.measured:
+            notes += [("reason", result.reason or ""),
+                      ("action", advice(_refusal_code(result), min_separation_deg))]
+        m = result.measurement
         if m is not None:
-            text = f"pin set {m['pin_set']}, measurement {m['number']} ({m['started_by']})"
-            previous = m["previous"]
+            text = f"pin set {m.pin_set}, measurement {m.number} ({m.started_by})"
+            previous = m.previous
             if previous is not None:
-                angles = ("not measured" if previous["ctr_deg"] is None else
-                          f"CTR {previous['ctr_deg']:+.1f}, STR {previous['str_deg']:+.1f} deg")
-                text += (f"; previous: pin set {previous['pin_set']}, measurement "
-                         f"{previous['number']}: {angles}, {previous['verdict'].replace('_', ' ')}")
-            change = change_line(previous, doc)
+                angles = ("not measured" if previous.ctr_deg is None or previous.str_deg is None
+                          else f"CTR {previous.ctr_deg:+.1f}, STR {previous.str_deg:+.1f} deg")
+                text += (f"; previous: pin set {previous.pin_set}, measurement "
+                         f"{previous.number}: {angles}, {previous.verdict.replace('_', ' ')}")
+            change = change_line(previous, result)
             notes.append(("history", text + (f"; {change}" if change else "")))
         return notes
 
@@ -556,19 +562,19 @@ class Pipeline:
         return self.calibration.distort_points(ideal)
 
     @staticmethod
-    def _summary_lines(doc: dict, min_separation_deg: float) -> list[str]:
-        m = doc.get("measurement")
-        head = [] if m is None else [f"Pin set {m['pin_set']}, measurement {m['number']}"]
-        if doc["status"] != "measured":
-            return ["NOT MEASURED", *head, doc["reason"],
-                    "Next: " + advice(_refusal_code(doc), min_separation_deg)]
-        a, t, d = doc["angles"], doc["target"], doc["deviation"]
-        change = change_line(m["previous"], doc) if m is not None else None
-        clock = [f"Note: {s['view_id']}: {s['clock']['message']}" for s in doc["sources"]
-                 if s.get("clock")]
-        return [f"CTR {a['ctr_deg']:+.1f} deg (+-{a['ctr_sigma_deg']:.1f})  plan {t['ctr_deg']:+.1f}",
-                f"STR {a['str_deg']:+.1f} deg (+-{a['str_sigma_deg']:.1f})  plan {t['str_deg']:+.1f}",
-                f"{'WITHIN' if d['within_tolerance'] else 'OUTSIDE'} +-{t['tolerance_deg']:.0f} deg",
+    def _summary_lines(result: MeasurementResult, min_separation_deg: float) -> list[str]:
+        m = result.measurement
+        head = [] if m is None else [f"Pin set {m.pin_set}, measurement {m.number}"]
+        a, t, d = result.angles, result.target, result.deviation
+        if not result.measured or a is None or t is None or d is None:
+            return ["NOT MEASURED", *head, result.reason or "",
+                    "Next: " + advice(_refusal_code(result), min_separation_deg)]
+        change = change_line(m.previous, result) if m is not None else None
+        clock = [f"Note: {s.view_id}: {s.clock_message}" for s in result.sources
+                 if s.clock_message]
+        return [f"CTR {a.ctr_deg:+.1f} deg (+-{a.ctr_sigma_deg:.1f})  plan {t.ctr_deg:+.1f}",
+                f"STR {a.str_deg:+.1f} deg (+-{a.str_sigma_deg:.1f})  plan {t.str_deg:+.1f}",
+                f"{'WITHIN' if d.within_tolerance else 'OUTSIDE'} +-{t.tolerance_deg:.0f} deg",
                 *head, *([change] if change else []), *clock]
 
     @staticmethod
@@ -579,6 +585,6 @@ class Pipeline:
         return OutgoingObject(path, kind, sop_class, str(ds.SOPInstanceUID))
 
 
-def _refusal_code(doc: dict) -> str:
-    """The refusal code of a not-measured document (``other`` for one without a refusal)."""
-    return (doc.get("refusal") or {}).get("code") or RefusalCode.OTHER
+def _refusal_code(result: MeasurementResult) -> str:
+    """The refusal code of a not-measured result (``other`` for one without a refusal)."""
+    return RefusalCode.OTHER if result.refusal is None else result.refusal.code

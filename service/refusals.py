@@ -29,6 +29,7 @@ class RefusalCode(StrEnum):
 
 Code = RefusalCode | Why
 CODES: tuple[str, ...] = tuple(c.value for c in RefusalCode) + tuple(w.value for w in Why)
+_SOLVER_CODES = frozenset(w.value for w in Why)
 
 
 # Codes a later re-run of the same views may clear, once the operator added what was missing
@@ -51,6 +52,13 @@ class Refusal:
 
     def to_json(self) -> dict:
         return {"code": self.code.value, "detail": self.detail, "may_restart": self.may_restart}
+
+    @classmethod
+    def from_json(cls, doc: dict) -> Refusal:
+        """The refusal as a result document states it (its code one of :data:`CODES`)."""
+        value = doc["code"]
+        code: Code = Why(value) if value in _SOLVER_CODES else RefusalCode(value)
+        return cls(code, doc["detail"], doc["may_restart"])
 
 
 def solver_refusal(why: Why | None, reason: str) -> Refusal:

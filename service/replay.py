@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from slamtka.service.results import MeasurementResult
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
@@ -129,25 +130,25 @@ def _recorded_plan(rec: Recording) -> tuple[Plan, dict]:
     return plan, inputs
 
 
-def check_recording(rec: Recording, expected: dict) -> list[str]:
-    """Every way in which ``rec`` does not reproduce the result document ``expected``."""
+def check_recording(rec: Recording, expected: MeasurementResult) -> list[str]:
+    """Every way in which ``rec`` does not reproduce the result ``expected``."""
     problems = []
-    recorded = rec.result
-    if recorded is None:
+    if rec.result is None:
         return ["the recording holds no result document (the run did not finish)"]
+    recorded = MeasurementResult.from_document(rec.result)
     for key in ("case_id", "run_id", "status", "verdict", "reason", "calibration", "case",
                 "angles", "deviation", "plane", "poses", "target"):
-        if recorded.get(key) != expected.get(key):
-            problems.append(f"{key}: recorded {recorded.get(key)!r} != result {expected.get(key)!r}")
-    uids = lambda doc: [s["sop_instance_uid"] for s in doc.get("sources", [])]  # noqa: E731
-    if uids(recorded) != uids(expected):
+        if getattr(recorded, key) != getattr(expected, key):
+            problems.append(f"{key}: recorded {getattr(recorded, key)!r} != result "
+                            f"{getattr(expected, key)!r}")
+    if ([s.sop_instance_uid for s in recorded.sources]
+            != [s.sop_instance_uid for s in expected.sources]):
         problems.append("source SOP Instance UIDs differ")
-    if expected.get("status") == "measured" and expected.get("poses"):
+    if expected.angles is not None and expected.poses is not None:
         plan, _ = _recorded_plan(rec)
-        pins = [Pose.from_json(T) for T in expected["poses"]["T_tibia_pin"]]
-        plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
+        plane = fit_resection_plane(expected.solved_pin_poses(), plan.pin_length(), plan.landmarks)
         for name, value in (("ctr_deg", plane.ctr), ("str_deg", plane.str_)):
-            diff = abs(float(np.degrees(value)) - expected["angles"][name])
+            diff = abs(float(np.degrees(value)) - getattr(expected.angles, name))
             if diff > ANGLE_TOLERANCE_DEG:
                 problems.append(f"{name} recomputed from the recorded pins differs by {diff:.2e} deg")
     return problems
@@ -190,15 +191,15 @@ def _summary(rec: Recording) -> str:
     costs = rec.scalars.get("solver/cost", [])
     if costs:
         lines.append(f"solver: {len(costs)} iterations recorded, cost {costs[0]:.4g} -> {costs[-1]:.4g}")
-    doc = rec.result
-    if doc is None:
+    result = None if rec.result is None else MeasurementResult.from_document(rec.result)
+    if result is None:
         lines.append("result: none (the run did not finish)")
-    elif doc["angles"] is None:
-        lines.append(f"result: {doc['case_id']} not measured: {doc['reason']}")
+    elif result.angles is None:
+        lines.append(f"result: {result.case_id} not measured: {result.reason}")
     else:
-        a = doc["angles"]
-        lines.append(f"result: {doc['case_id']} CTR {a['ctr_deg']:+.2f} +- {a['ctr_sigma_deg']:.2f} deg, "
-                     f"STR {a['str_deg']:+.2f} +- {a['str_sigma_deg']:.2f} deg, {doc['verdict']}")
+        a = result.angles
+        lines.append(f"result: {result.case_id} CTR {a.ctr_deg:+.2f} +- {a.ctr_sigma_deg:.2f} deg, "
+                     f"STR {a.str_deg:+.2f} +- {a.str_sigma_deg:.2f} deg, {result.verdict}")
     return "\n".join(lines)
 
 
@@ -207,16 +208,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(_summary(rec))
     problems: list[str] = []
     if args.check is not None:
-        expected = read_json_object(args.check)
+        expected = MeasurementResult.from_document(read_json_object(args.check))
         problems = check_recording(rec, expected)
         if args.resolve:
             again, notes = resolve_recording(rec)
             problems += notes
-            if again["status"] != expected["status"]:
-                problems.append(f"re-solved status {again['status']} != {expected['status']}")
-            elif again["status"] == "measured":
+            if again["status"] != expected.status:
+                problems.append(f"re-solved status {again['status']} != {expected.status}")
+            elif expected.angles is not None:
                 for name in ("ctr_deg", "str_deg"):
-                    diff = abs(again[name] - expected["angles"][name])
+                    diff = abs(again[name] - getattr(expected.angles, name))
                     if diff > RESOLVE_TOLERANCE_DEG:
                         problems.append(f"re-solved {name} differs by {diff:.4f} deg")
             print(f"re-solved from the recorded inputs: {again}")

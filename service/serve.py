@@ -413,20 +413,20 @@ class Service:
             self.audit.record("failed", case_id=case.case_id, run_id=run_id,
                               error=f"{type(exc).__name__}: {exc}")
             return
-        doc = outcome.doc
-        angles = doc["angles"] or {}
-        self.workflow.finish_run(case, run_id, doc)
-        refusal = doc["refusal"] or {}
-        if refusal.get("may_restart"):
-            self._waiting[case.case_id] = refusal["code"]
+        result, angles, refusal = outcome.result, outcome.result.angles, outcome.result.refusal
+        self.workflow.finish_run(case, run_id, result)
+        if refusal is not None and refusal.may_restart:
+            self._waiting[case.case_id] = refusal.code.value
         else:
             self._waiting.pop(case.case_id, None)
         self._last_result = self.audit.record(
             "processed", case_id=case.case_id, run_id=run_id, pin_set=measurement["pin_set"],
-            number=measurement["number"], status=doc["status"],
-            verdict=doc["verdict"], reason=doc["reason"],
-            refusal_code=refusal.get("code"), ctr_deg=angles.get("ctr_deg"),
-            str_deg=angles.get("str_deg"), seconds=doc["timings"]["total_s"],
+            number=measurement["number"], status=result.status,
+            verdict=result.verdict, reason=result.reason,
+            refusal_code=None if refusal is None else refusal.code.value,
+            ctr_deg=None if angles is None else angles.ctr_deg,
+            str_deg=None if angles is None else angles.str_deg,
+            seconds=result.timings["total_s"],
             folder=str(outcome.folder), outputs_sha256=file_digests(outcome.folder))
 
 

@@ -8,40 +8,41 @@ from pathlib import Path
 
 from slamtka.solver.case import load_case
 from slamtka.solver.jsonfile import read_json_object
-from slamtka.solver.result import result_document
-from slamtka.solver.slam import METHODS, SolverConfig, solve_joint
+from slamtka.solver.plan import Target
+from slamtka.solver.result import Angles, Deviation, measured_angles, result_document
+from slamtka.solver.slam import METHODS, SolveOutcome, SolverConfig, solve_joint
 
 __all__ = ["add_solve_parser", "cmd_solve"]
 
 
-def _summary(doc: dict) -> str:
-    lines = [f"case {doc['case_id']}: {doc['status'].replace('_', ' ')}"]
-    if doc["angles"] is None:
-        lines.append(f"  reason: {doc['reason']}")
+def _summary(case_id: str, outcome: SolveOutcome, target: Target,
+             measured: tuple[Angles, Deviation] | None, method: str) -> str:
+    lines = [f"case {case_id}: {outcome.status.replace('_', ' ')}"]
+    if measured is None:
+        lines.append(f"  reason: {outcome.reason or None}")
     else:
-        a, d, t = doc["angles"], doc["deviation"], doc["target"]
+        (a, d), t = measured, target
         lines += [
-            f"  CTR {a['ctr_deg']:+6.2f} deg +- {a['ctr_sigma_deg']:.2f}  (plan {t['ctr_deg']:+.1f}, "
-            f"deviation {d['ctr_deg']:+.2f})   positive = varus",
-            f"  STR {a['str_deg']:+6.2f} deg +- {a['str_sigma_deg']:.2f}  (plan {t['str_deg']:+.1f}, "
-            f"deviation {d['str_deg']:+.2f})   positive = posterior slope",
-            f"  within +-{t['tolerance_deg']:.1f} deg of plan: {'yes' if d['within_tolerance'] else 'NO'}",
+            f"  CTR {a.ctr_deg:+6.2f} deg +- {a.ctr_sigma_deg:.2f}  (plan {t.ctr_deg:+.1f}, "
+            f"deviation {d.ctr_deg:+.2f})   positive = varus",
+            f"  STR {a.str_deg:+6.2f} deg +- {a.str_sigma_deg:.2f}  (plan {t.str_deg:+.1f}, "
+            f"deviation {d.str_deg:+.2f})   positive = posterior slope",
+            f"  within +-{t.tolerance_deg:.1f} deg of plan: {'yes' if d.within_tolerance else 'NO'}",
         ]
-    s = doc["solver"]
-    rms = ", ".join(f"{k} {v:.2f}" for k, v in s["residual_rms_sigma"].items())
-    lines.append(f"  solver ({s['method']}, started from the {s['start']}): {s['iterations']} "
-                 f"iterations, {s['seconds']:.2f} s, {s['convergence_reason']}; residual RMS "
-                 f"(sigmas): {rms or 'n/a'}")
+    rms = ", ".join(f"{k} {v:.2f}" for k, v in outcome.residual_rms.items())
+    lines.append(f"  solver ({method}, started from the {outcome.initialisation}): "
+                 f"{outcome.iterations} iterations, {outcome.seconds:.2f} s, "
+                 f"{outcome.convergence_reason}; residual RMS (sigmas): {rms or 'n/a'}")
     return "\n".join(lines)
 
 
-def _truth_line(folder: Path, doc: dict) -> str | None:
+def _truth_line(folder: Path, angles: Angles | None) -> str | None:
     path = folder / "ground_truth.json"
-    if not path.is_file() or doc["angles"] is None:
+    if not path.is_file() or angles is None:
         return None
     truth = read_json_object(path)
-    e_ctr = doc["angles"]["ctr_deg"] - truth["ctr_deg"]
-    e_str = doc["angles"]["str_deg"] - truth["str_deg"]
+    e_ctr = angles.ctr_deg - truth["ctr_deg"]
+    e_str = angles.str_deg - truth["str_deg"]
     return (f"  simulated truth: CTR {truth['ctr_deg']:+.2f}, STR {truth['str_deg']:+.2f} deg; "
             f"error CTR {e_ctr:+.3f}, STR {e_str:+.3f} deg")
 
@@ -54,11 +55,12 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(doc, indent=2))
-    print(_summary(doc))
-    truth = _truth_line(args.case_dir, doc)
+    measured = measured_angles(outcome, case.plan)
+    print(_summary(case.case_id, outcome, case.plan.target, measured, args.method))
+    truth = _truth_line(args.case_dir, None if measured is None else measured[0])
     if truth:
         print(truth)
-    return 0 if doc["status"] == "measured" else 3
+    return 0 if outcome.status == "measured" else 3
 
 
 def add_solve_parser(sub: argparse._SubParsersAction) -> None:

@@ -37,8 +37,8 @@ from slamtka.service.pinsets import (
     PinSetStore,
     pin_disagreement_px,
 )
+from slamtka.service.results import MeasurementResult
 from slamtka.service.sender import OutgoingObject, Sender
-from slamtka.solver.geometry import Pose
 from slamtka.solver.measurement import pin_axis_points
 
 __all__ = ["Workflow", "write_request", "REQUEST_KINDS"]
@@ -162,11 +162,9 @@ class Workflow:
         reference = self._latest_measured(case, current)
         if reference is None:
             return None
-        doc, views = reference
+        result, views = reference
         plan = self.pipeline.plans.find(case.patient_id, case.laterality)
-        by_uid = {s["sop_instance_uid"]: s["view_id"] for s in doc["sources"] if s["used"]}
-        solved = {uid: Pose.from_json(doc["poses"]["T_cam_tibia"][vid])
-                  for uid, vid in by_uid.items() if vid in doc["poses"]["T_cam_tibia"]}
+        solved = result.solved_view_poses()
         candidates = [v for v in views if v.sop_instance_uid in solved]
         if not candidates:
             return None
@@ -176,31 +174,32 @@ class Workflow:
                                                      [ref.positioner, view.positioner])
         T_ref0, T_new0 = start.T_cam_tibia
         T_new = T_new0 @ T_ref0.inverse() @ solved[ref.sop_instance_uid]
-        axes = [pin_axis_points(Pose.from_json(T), plan.pin_length())[[0, -1]]
-                for T in doc["poses"]["T_tibia_pin"]]
+        axes = [pin_axis_points(T, plan.pin_length())[[0, -1]]
+                for T in result.solved_pin_poses()]
         off = pin_disagreement_px(self.pipeline.calibration.camera, T_new, axes,
                                   [contours["pin1"], contours["pin2"]])
-        misfit = (doc.get("measurement") or {}).get("pin_misfit_px") or 0.0
+        misfit = (result.measurement and result.measurement.pin_misfit_px) or 0.0
         threshold = max(MIN_PIN_THRESHOLD_PX, PIN_NOISE_FACTOR * misfit)
         self.audit.record("pin_check", case_id=case.case_id, pin_set=current.number,
                           sop_instance_uid=view.sop_instance_uid, offset_px=round(off, 2),
-                          threshold_px=round(threshold, 2), reference_run=doc["run_id"])
+                          threshold_px=round(threshold, 2), reference_run=result.run_id)
         if off <= threshold:
             return None
         return (f"pins moved: {off:.1f} px from pin set {current.number}'s measured pins "
                 f"(threshold {threshold:.1f} px)")
 
-    def _latest_measured(self, case: Case, current: PinSet) -> tuple[dict, list[View]] | None:
+    def _latest_measured(self, case: Case, current: PinSet
+                         ) -> tuple[MeasurementResult, list[View]] | None:
         """The set's newest measured result and the case's views it used."""
         for record in reversed(current.runs):
             if record.get("verdict") in ("pass", "fail"):
                 path = self.pipeline.output_root / case.case_id / record["run_id"] / "result.json"
                 try:
-                    doc = json.loads(path.read_text())
+                    result = MeasurementResult.from_document(json.loads(path.read_text()))
                 except (OSError, ValueError):
                     continue
-                used = {s["sop_instance_uid"] for s in doc["sources"] if s["used"]}
-                return doc, [v for v in case.views.values() if v.sop_instance_uid in used]
+                used = {s.sop_instance_uid for s in result.sources if s.used}
+                return result, [v for v in case.views.values() if v.sop_instance_uid in used]
         return None
 
     def _waiting(self, case: Case, current: PinSet, no_plan: bool) -> Status:
@@ -254,23 +253,24 @@ class Workflow:
                        "started_by": pin_set.started_by, "previous": record["previous"]}
         return run_id, measurement, datetime.fromisoformat(record["triggered"])
 
-    def finish_run(self, case: Case, run_id: str, doc: dict) -> None:
+    def finish_run(self, case: Case, run_id: str, result: MeasurementResult) -> None:
         sets = self.store.get(case.case_id)
         found = sets.run_record(run_id)
         if found is None:
             return
-        angles = doc["angles"] or {}
-        found[1].update(verdict=doc["verdict"], ctr_deg=angles.get("ctr_deg"),
-                        str_deg=angles.get("str_deg"))
+        angles = result.angles
+        found[1].update(verdict=result.verdict,
+                        ctr_deg=None if angles is None else angles.ctr_deg,
+                        str_deg=None if angles is None else angles.str_deg)
         self.store.save(sets)
-        if doc["outputs"].get("dicom_error"):
-            self.audit.record("output_failed", case_id=case.case_id, run_id=run_id,
-                              error=doc["outputs"]["dicom_error"])
+        error = result.outputs.dicom_error
+        if error:
+            self.audit.record("output_failed", case_id=case.case_id, run_id=run_id, error=error)
             views = self.selection(case)
             if views:
                 self.tell(case, views[-1], Status(
                     "output_failed", "The result could not be made into DICOM "
-                    f"({doc['outputs']['dicom_error'][:120]}); it is in result.json.",
+                    f"({error[:120]}); it is in result.json.",
                     "read the result on the service workstation (slamtka case show CASE)"))
 
     # -- requests -------------------------------------------------------------------------

@@ -8,6 +8,7 @@ only the reason.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from importlib.metadata import PackageNotFoundError, version
 
 import numpy as np
@@ -18,7 +19,8 @@ from slamtka.solver.plan import Plan
 from slamtka.solver.sdf import mesh_digest
 from slamtka.solver.slam import SolveOutcome
 
-__all__ = ["RESULT_FORMAT", "result_document", "software_version"]
+__all__ = ["RESULT_FORMAT", "Angles", "Deviation", "measured_angles", "result_document",
+           "software_version"]
 
 RESULT_FORMAT = "slamtka-result/1"
 
@@ -30,20 +32,43 @@ def software_version() -> str:
         return "unknown"
 
 
-def _angles(outcome: SolveOutcome, plan: Plan) -> dict:
+@dataclass(frozen=True)
+class Angles:
+    """The measured resection angles and their 1-sigma, in degrees (CTR + varus, STR +
+    posterior slope)."""
+
+    ctr_deg: float
+    str_deg: float
+    ctr_sigma_deg: float
+    str_sigma_deg: float
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Deviation:
+    """Measured minus planned angles (degrees), and whether both are within the tolerance."""
+
+    ctr_deg: float
+    str_deg: float
+    within_tolerance: bool
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def measured_angles(outcome: SolveOutcome, plan: Plan) -> tuple[Angles, Deviation] | None:
+    """The angles of a measured outcome and their deviation from the plan (None if refused)."""
     if outcome.status != "measured" or outcome.plane is None or outcome.angle_cov is None:
-        return {"angles": None, "deviation": None}
+        return None
     ctr, str_ = float(np.degrees(outcome.plane.ctr)), float(np.degrees(outcome.plane.str_))
     sigma = np.degrees(np.sqrt(np.diag(outcome.angle_cov)))
     t = plan.target
     d_ctr, d_str = ctr - t.ctr_deg, str_ - t.str_deg
-    return {
-        "angles": {"ctr_deg": ctr, "str_deg": str_,
-                   "ctr_sigma_deg": float(sigma[0]), "str_sigma_deg": float(sigma[1])},
-        "deviation": {"ctr_deg": d_ctr, "str_deg": d_str,
-                      "within_tolerance": bool(abs(d_ctr) <= t.tolerance_deg
-                                               and abs(d_str) <= t.tolerance_deg)},
-    }
+    return (Angles(ctr, str_, float(sigma[0]), float(sigma[1])),
+            Deviation(d_ctr, d_str, bool(abs(d_ctr) <= t.tolerance_deg
+                                         and abs(d_str) <= t.tolerance_deg)))
 
 
 def result_document(case_id: str, outcome: SolveOutcome, plan: Plan,
@@ -54,6 +79,7 @@ def result_document(case_id: str, outcome: SolveOutcome, plan: Plan,
         plane = {"point_tibia_mm": outcome.plane.point.tolist(),
                  "normal_tibia": outcome.plane.normal.tolist(),
                  "normal_anatomical": (R_anat.T @ outcome.plane.normal).tolist()}
+    measured = measured_angles(outcome, plan)
     return {
         "format": RESULT_FORMAT,
         "software": {"name": "slamtka", "version": software_version()},
@@ -61,7 +87,8 @@ def result_document(case_id: str, outcome: SolveOutcome, plan: Plan,
         "status": outcome.status,
         "reason": outcome.reason or None,
         "sign_convention": SIGN_CONVENTION,
-        **_angles(outcome, plan),
+        "angles": None if measured is None else measured[0].to_json(),
+        "deviation": None if measured is None else measured[1].to_json(),
         "target": {"ctr_deg": plan.target.ctr_deg, "str_deg": plan.target.str_deg,
                    "tolerance_deg": plan.target.tolerance_deg},
         "plane": plane,

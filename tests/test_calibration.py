@@ -246,7 +246,7 @@ def test_a_run_leaves_out_a_frame_of_a_c_arm_without_calibration(tmp_path):
     mine = _calibration(tmp_path, "or3", {"device_serial_number": "OR3"})
     pipeline = Pipeline(spool, PlanStore(tmp_path / "plans"), CalibrationSet([mine], None), geometry,
                         tmp_path / "out")
-    doc = pipeline.run(case, case.selection(6)).doc
+    doc = pipeline.run(case, case.selection(6)).result.to_document()
     assert doc["status"] == "not_measured" and doc["calibration"] is None
     problem = ("no calibration for the C-arm with Device Serial Number 'OR7' (install one with "
                "`slamtka calibration install`)")

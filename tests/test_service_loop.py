@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pydicom
 import pytest
-from service_testing import count_decoding, small_frame
+from service_testing import count_decoding, result_document, small_frame
 
 from slamtka.drivers.kinematics import CArmKinematics
 from slamtka.service.audit import AuditLog, read_audit
@@ -31,6 +31,7 @@ from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import PinSetStore, pin_disagreement_px
 from slamtka.service.plans import PlanStore
 from slamtka.service.poses import ViewGeometry
+from slamtka.service.results import MeasurementResult
 from slamtka.service.sender import Sender
 from slamtka.service.spool import Spool
 from slamtka.service.workflow import Workflow, write_request
@@ -81,7 +82,7 @@ class Loop:
         run_id, measurement, triggered = self.workflow.begin_run(case, views, rerun)
         outcome = self.pipeline.run(case, views, run_id=run_id, measurement=measurement,
                                     triggered=triggered)
-        self.workflow.finish_run(case, run_id, outcome.doc)
+        self.workflow.finish_run(case, run_id, outcome.result)
         return outcome
 
     def events(self, name: str) -> list[dict]:
@@ -99,7 +100,7 @@ def test_turned_pins_start_a_new_set_measured_from_its_own_views(rendered, tmp_p
     assert not due and _statuses(loop) == ["waiting"]  # the display hears: second view needed
     c, due = loop.add(case.frames[1], 1)
     assert due
-    first = loop.run(c).doc
+    first = loop.run(c).result.to_document()
     assert first["status"] == "measured", first["reasons"]
     assert first["measurement"]["pin_set"] == 1 and first["measurement"]["number"] == 1
     assert first["measurement"]["previous"] is None
@@ -109,7 +110,7 @@ def test_turned_pins_start_a_new_set_measured_from_its_own_views(rendered, tmp_p
     c, due = loop.add(again.frames[0], 2)
     assert due and loop.events("pin_check")[-1]["offset_px"] < 1.0
     assert loop.workflow.store.get(c.case_id).current.number == 1
-    second = loop.run(c).doc
+    second = loop.run(c).result.to_document()
     assert second["measurement"]["number"] == 2 and len(second["sources"]) == 3
 
     # Turned by 2 deg about the AP axis (CTR +2): a new set, which waits for its second view.
@@ -122,7 +123,7 @@ def test_turned_pins_start_a_new_set_measured_from_its_own_views(rendered, tmp_p
     assert due
     views = loop.workflow.selection(c)
     assert {v.sop_instance_uid for v in views} == {f.sop_instance_uid for f in turned.frames}
-    third = loop.run(c).doc
+    third = loop.run(c).result.to_document()
     assert third["status"] == "measured", third["reasons"]
     assert abs(third["angles"]["ctr_deg"] - turned.truth_ctr_deg) < 0.5
     assert abs(third["angles"]["str_deg"] - turned.truth_str_deg) < 0.5
@@ -148,7 +149,7 @@ def test_an_operator_starts_a_new_set_and_reruns_without_new_views(rendered, tmp
     loop = Loop(tmp_path, th, calibration)
     loop.add(case.frames[0])
     c, _ = loop.add(case.frames[1], 1)
-    first = loop.run(c).doc
+    first = loop.run(c).result.to_document()
     write_request(tmp_path / "requests", "new-set", c.case_id, "dr who")
     write_request(tmp_path / "requests", "rerun", c.case_id, "dr who")
     write_request(tmp_path / "requests", "rerun", "case-unknown", "dr who")
@@ -157,7 +158,7 @@ def test_an_operator_starts_a_new_set_and_reruns_without_new_views(rendered, tmp
     assert not list((tmp_path / "requests").glob("*.json"))  # taken
     assert [e["known_case"] for e in loop.events("operator_request")] == [True, True, False]
 
-    rerun = loop.run(c, rerun=True).doc
+    rerun = loop.run(c, rerun=True).result.to_document()
     assert rerun["run_id"] != first["run_id"]  # a new run: new UIDs, never the old ones reused
     assert rerun["measurement"]["number"] == 2 and rerun["status"] == "measured"
     assert rerun["outputs"]["sr_sop_instance_uid"] != first["outputs"]["sr_sop_instance_uid"]
@@ -179,7 +180,7 @@ def test_a_repeated_run_rebuilds_identical_dicom_objects(rendered, tmp_path):
     loop.pipeline._extracted.clear()  # a new process: nothing cached
     loop.spool.decoded = DecodedFrames(loop.spool)
     again = loop.run(c)
-    assert again.doc["run_id"] == outcome.doc["run_id"]
+    assert again.result.run_id == outcome.result.run_id
     after = {p.name: p.read_bytes() for p in folder.glob("*.dcm")}
     assert sorted(after) == ["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"]
     assert after == before  # byte for byte: tracking UIDs and dates derive from the run
@@ -225,16 +226,15 @@ def test_header_values_common_on_real_systems_still_build_the_results(attribute,
                                                                       tmp_path):
     ds = encode_frame(small_frame())
     setattr(ds, attribute, value)
-    doc = {"status": "not_measured", "reason": "x", "software": {"version": "t"},
-           "inputs": None, "case": {"laterality": None}}
     if attribute != "Laterality":  # (build_sc itself passes on only L and R)
         with pytest.raises((ValueError, TypeError)):  # the builders refuse the value as received ...
-            build_sr(doc, [ds], None, series_uid="1.2.3", sop_instance_uid="1.2.3.4",
+            build_sr([ds], None, side=None, version="t", series_uid="1.2.3",
+                     sop_instance_uid="1.2.3.4",
                      uid_for=lambda what: "1.2.3.5", content_datetime=_WHEN)
     received = copy.deepcopy(ds)
     clean = sanitised_header(ds)  # ... and accept it sanitised; the received one is unchanged
     assert ds == received
-    build_sr(doc, [clean], None, series_uid="1.2.3", sop_instance_uid="1.2.3.4",
+    build_sr([clean], None, side=None, version="t", series_uid="1.2.3", sop_instance_uid="1.2.3.4",
              uid_for=lambda what: "1.2.3.5", content_datetime=_WHEN)
     build_sc(clean, np.zeros((8, 8, 3), np.uint8), series_uid="1.2.3", sop_instance_uid="1.2.4",
              instance_number=1, orientation=None, content_datetime=_WHEN)
@@ -262,8 +262,8 @@ def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything
     views = loop.workflow.selection(c)
     outcome = loop.pipeline.run(c, views, on_output=lambda obj: seen.append(
         sorted(p.name for p in obj.path.parent.glob("*.dcm"))))
-    assert outcome.doc["status"] == "measured"
-    assert outcome.doc["outputs"].get("dicom_error") is None
+    assert outcome.result.status == "measured"
+    assert outcome.result.outputs.dicom_error is None
     # Nothing was handed to the sender before every object of the run was on disk.
     assert seen == [["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"]] * 3
 
@@ -282,7 +282,7 @@ def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything
         doc["outputs"]["dicom_error"]
     assert seen == []
     loop.workflow.begin_run(c, views)
-    loop.workflow.finish_run(c, doc["run_id"], doc)
+    loop.workflow.finish_run(c, doc["run_id"], MeasurementResult.from_document(doc))
     assert loop.events("output_failed")[0]["run_id"] == doc["run_id"]
 
 
@@ -384,18 +384,19 @@ def test_the_overlay_and_report_say_what_changed_since_the_previous_measurement(
     from slamtka.service.display import change_line
     from slamtka.service.pipeline import Pipeline
 
-    doc = {"status": "measured", "angles": {"ctr_deg": 0.4, "str_deg": 5.1, "ctr_sigma_deg": 0.1,
-                                            "str_sigma_deg": 0.2},
-           "target": {"ctr_deg": 0.0, "str_deg": 3.0, "tolerance_deg": 3.0},
-           "deviation": {"within_tolerance": True}, "sources": [],
-           "measurement": {"pin_set": 2, "number": 1, "started_by": "pins moved",
-                           "previous": {"run_id": "r1", "pin_set": 1, "number": 1,
-                                        "ctr_deg": 0.4, "str_deg": 6.7, "verdict": "fail"}}}
-    line = change_line(doc["measurement"]["previous"], doc)
+    doc = result_document(
+        angles={"ctr_deg": 0.4, "str_deg": 5.1, "ctr_sigma_deg": 0.1, "str_sigma_deg": 0.2},
+        target={"ctr_deg": 0.0, "str_deg": 3.0, "tolerance_deg": 3.0},
+        measurement={"pin_set": 2, "number": 1, "started_by": "pins moved",
+                     "previous": {"run_id": "r1", "pin_set": 1, "number": 1,
+                                  "ctr_deg": 0.4, "str_deg": 6.7, "verdict": "fail"}})
+    result = MeasurementResult.from_document(doc)
+    assert result.measurement is not None
+    line = change_line(result.measurement.previous, result)
     assert line == "STR +6.7 -> +5.1, now within +-3 (was outside)"
-    lines = Pipeline._summary_lines(doc, 15.0)
+    lines = Pipeline._summary_lines(result, 15.0)
     assert "Pin set 2, measurement 1" in lines and line in lines
-    notes = dict(Pipeline._notes(doc, 15.0))
+    notes = dict(Pipeline._notes(result, 15.0))
     assert notes["history"].startswith("pin set 2, measurement 1 (pins moved); previous: pin set "
                                        "1, measurement 1: CTR +0.4, STR +6.7 deg, fail")
-    assert change_line(None, doc) is None
+    assert change_line(None, result) is None

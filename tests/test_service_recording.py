@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from service_testing import small_frame
+from service_testing import result_document, small_frame
 
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.replay import check_recording, read_recording
+from slamtka.service.results import MeasurementResult
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.solver.optimizer import IterationInfo, State
 from slamtka.solver.variables import pin_key, view_key
@@ -62,13 +63,13 @@ def test_a_recording_reads_back_stage_by_stage(tmp_path, plan):
 
 def test_check_names_every_difference(tmp_path, plan):
     path = tmp_path / "recording.rrd"
-    result = {"case_id": "case-x", "run_id": "run-y", "status": "not_measured", "reason": "r",
-              "angles": None, "sources": [{"sop_instance_uid": "1.2"}]}
+    result = result_document(False, reason="r")
     _record(path, plan, result)
     rec = read_recording(path)
-    assert check_recording(rec, result) == []
-    changed = {**result, "reason": "other", "sources": [{"sop_instance_uid": "1.3"}]}
-    problems = check_recording(rec, changed)
+    assert check_recording(rec, MeasurementResult.from_document(result)) == []
+    changed = {**result, "reason": "other",
+               "sources": [{**result["sources"][0], "sop_instance_uid": "1.3"}]}
+    problems = check_recording(rec, MeasurementResult.from_document(changed))
     assert any(p.startswith("reason:") for p in problems)
     assert "source SOP Instance UIDs differ" in problems
 

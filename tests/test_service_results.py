@@ -1,8 +1,10 @@
-"""Result documents against the published schema; SR and SC against dciodvfy and dsrdump."""
+"""Results and their documents against the published schema; SR and SC against dciodvfy and
+dsrdump."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import datetime as dt
 import json
 import shutil
@@ -13,14 +15,24 @@ import numpy as np
 import pydicom
 import pytest
 from pydicom.uid import generate_uid
-from service_testing import small_frame
+from service_testing import result_document, small_frame
 
 from slamtka.service.dicom_sc import ScOverlay, build_sc, patient_orientation, render_overlay
-from slamtka.service.dicom_sr import SrGeometry, build_sr, tibia_frame_of_reference_uid
+from slamtka.service.dicom_sr import (
+    SrGeometry,
+    SrMeasurement,
+    build_sr,
+    tibia_frame_of_reference_uid,
+)
 from slamtka.service.frames import encode_frame
 from slamtka.service.pipeline import plane_polygon, result_uid
 from slamtka.service.refusals import CODES, Refusal, RefusalCode, solver_refusal
-from slamtka.service.results import build_result, result_schema, validate_result
+from slamtka.service.results import (
+    MeasurementResult,
+    build_result,
+    result_schema,
+    validate_result,
+)
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.gates import Why
@@ -55,10 +67,11 @@ def _sources(n: int) -> list[dict]:
              "positioner": {"primary_angle_deg": -30.0, "secondary_angle_deg": 0.0,
                             "sid_mm": 1000.0, "sod_mm": 620.0},
              "initialisation": "dicom_positioner", "encoder_reading": None, "angle_check": None,
-             "contours": "extracted", "used": True} for k in range(1, n + 1)]
+             "clock": None, "contours": "extracted", "used": True, "problem": None}
+            for k in range(1, n + 1)]
 
 
-def _document(plan, case, outcome) -> dict:
+def _result(plan, case, outcome) -> MeasurementResult:
     return build_result(
         case_id="case-0123456789abcdef", run_id="0123456789abcdef",
         case={"patient_id": "P-1", "study_instance_uid": generate_uid(), "laterality": "R"},
@@ -68,6 +81,10 @@ def _document(plan, case, outcome) -> dict:
         refusal=None, reasons=[], timings={"solve_s": 0.4, "total_s": 0.9},
         outputs={"folder": "/out", "recording": "/out/recording.rrd",
                  "sr_sop_instance_uid": generate_uid(), "sc_sop_instance_uids": {}})
+
+
+def _document(plan, case, outcome) -> dict:
+    return _result(plan, case, outcome).to_document()
 
 
 def test_the_published_schema_is_a_valid_json_schema():
@@ -101,7 +118,8 @@ def test_refused_document_validates_with_reasons_and_no_angles():
                        reasons=["view3: not initialised, left out (no reading)"],
                        timings={"total_s": 0.1},
                        outputs={"folder": "/o", "recording": "/o/r.rrd",
-                                "sr_sop_instance_uid": "1.2.3.4", "sc_sop_instance_uids": {}})
+                                "sr_sop_instance_uid": "1.2.3.4", "sc_sop_instance_uids": {}}
+                       ).to_document()
     assert doc["status"] == "not_measured" and doc["verdict"] == "not_measured"
     assert doc["angles"] is None and doc["reason"] == "no plan for patient 'P-2'"
     assert doc["reasons"] == ["no plan for patient 'P-2'",
@@ -141,6 +159,50 @@ def test_schema_refuses_broken_documents_naming_the_place(truth_case, tamper, wh
     assert where in str(err.value)
 
 
+def test_a_result_is_frozen_and_gives_back_the_document_it_was_made_from(truth_case):
+    built = _result(*truth_case)
+    doc = built.to_document()
+    again = MeasurementResult.from_document(doc)
+    assert again == built
+    assert json.dumps(again.to_document()) == json.dumps(doc)  # key order included
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        built.status = "not_measured"  # type: ignore[misc]
+    doc["angles"]["ctr_deg"] = 99.0  # the object keeps its own copy of the document
+    assert built.angles is not None and built.angles.ctr_deg != 99.0
+    for measured in (True, False):
+        stored = result_document(measured)
+        assert MeasurementResult.from_document(stored).to_document() == stored
+
+
+def test_a_refused_result_reads_back_its_refusal_and_side():
+    result = MeasurementResult.from_document(result_document(False, inputs=None))
+    assert result.refusal == solver_refusal(Why.PINS_INDISTINCT,
+                                            "the two pins cannot be told apart in view view2")
+    assert (result.angles, result.measured, result.side) == (None, False, "right")
+
+
+def test_a_result_says_which_member_breaks_the_schema():
+    with pytest.raises(ValueError, match="deviation/within_tolerance") as err:
+        MeasurementResult.from_document(result_document(
+            deviation={"ctr_deg": 0.0, "str_deg": 0.0, "within_tolerance": "yes"}))
+    assert "breaks the schema" in str(err.value)
+    with pytest.raises(ValueError, match="measurement/previous"):
+        MeasurementResult.from_document(result_document(measurement={
+            "pin_set": 1, "number": 2, "started_by": "first view", "previous": {"run_id": "r"}}))
+
+
+def test_completing_a_result_keeps_the_rest():
+    result = MeasurementResult.from_document(result_document())
+    done = result.completed({"total_s": 1.5, "results_s": 0.2}, "ValueError: refused")
+    doc = done.to_document()
+    assert doc["timings"] == {"total_s": 1.5, "results_s": 0.2}
+    assert doc["outputs"]["dicom_error"] == "ValueError: refused"
+    assert "dicom_error" not in result.to_document()["outputs"]  # absent, not null
+    MeasurementResult.from_document(doc)
+    assert {**doc, "timings": None, "outputs": None} == {
+        **result.to_document(), "timings": None, "outputs": None}
+
+
 def _dciodvfy_errors(path) -> list[str]:
     out = subprocess.run(["dciodvfy", str(path)], capture_output=True, text=True, timeout=60)
     return [line for line in (out.stdout + out.stderr).splitlines() if line.startswith("Error")]
@@ -149,7 +211,8 @@ def _dciodvfy_errors(path) -> list[str]:
 @needs_dicom3tools
 def test_sr_passes_dciodvfy_and_reads_back_with_dsrdump(truth_case, tmp_path):
     plan, case, outcome = truth_case
-    doc = _document(plan, case, outcome)
+    result = _result(plan, case, outcome)
+    doc = result.to_document()
     evidence = [encode_frame(small_frame()) for _ in range(2)]
     for ds in evidence[1:]:
         ds.StudyInstanceUID = evidence[0].StudyInstanceUID
@@ -157,7 +220,9 @@ def test_sr_passes_dciodvfy_and_reads_back_with_dsrdump(truth_case, tmp_path):
     geometry = SrGeometry(tibia_frame_of_reference_uid("cd" * 32),
                           plane_polygon(outcome.plane.point, outcome.plane.normal), axes,
                           [88.0, 91.0], "right")
-    sr = build_sr(doc, evidence, geometry, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
+    sr = build_sr(evidence, SrMeasurement(result.angles, result.deviation, geometry),
+                  side=result.side, version=result.software_version, series_uid=generate_uid(),
+                  sop_instance_uid=generate_uid(),
                   uid_for=lambda what: result_uid("case-x", "run", what), content_datetime=_WHEN)
     path = tmp_path / "sr.dcm"
     sr.save_as(path, enforce_file_format=True)
@@ -184,9 +249,8 @@ def test_sr_passes_dciodvfy_and_reads_back_with_dsrdump(truth_case, tmp_path):
 def test_not_measured_sr_and_sc_pass_dciodvfy(tmp_path):
     frame = small_frame(pixels=np.random.default_rng(2).integers(0, 4000, (256, 256)).astype(np.uint16))
     source = encode_frame(frame)
-    doc = {"status": "not_measured", "angles": None, "deviation": None,
-           "software": {"version": "0.1.0"}, "inputs": None, "case": {"laterality": "R"}}
-    sr = build_sr(doc, [source], None, series_uid=generate_uid(), sop_instance_uid=generate_uid(),
+    sr = build_sr([source], None, side="right", version="0.1.0", series_uid=generate_uid(),
+                  sop_instance_uid=generate_uid(),
                   uid_for=lambda what: result_uid("case-x", "run", what), content_datetime=_WHEN,
                   notes=[("reason", "no plan for patient 'P-1', right side"),
                          ("action", "add the plan, then re-run the case")])
