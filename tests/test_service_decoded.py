@@ -91,8 +91,9 @@ def test_an_instance_is_decoded_once_on_the_normal_path(tmp_path, monkeypatch):
     assert sidecar["instance_bytes"] == stored[0].path.stat().st_size
     worker = _Worker(tmp_path, spool)
     assert [worker.take(entry) for entry in stored] == [False, True]
-    doc = worker.run().doc
-    assert doc["refusal"]["code"] == "no_plan" and len(doc["sources"]) == 2
+    result = worker.run().result
+    assert result.refusal is not None and result.refusal.code == "no_plan"
+    assert len(result.sources) == 2
     assert calls == {"decode_frame": 2, "decode_pixels": 2}  # assembly, status, run: none
     assert {"frame", "pairing", "instance_bytes"} <= set(json.loads(stored[0].sidecar.read_text()))
 
@@ -108,8 +109,8 @@ def test_a_restart_uses_the_sidecar_and_reads_only_pixels(tmp_path, monkeypatch)
     for entry in spool.entries():
         worker.assembler.add(entry)
     assert calls == {}  # the cases are rebuilt from the sidecars alone
-    doc = worker.run().doc
-    assert doc["refusal"]["code"] == "no_plan"
+    result = worker.run().result
+    assert result.refusal is not None and result.refusal.code == "no_plan"
     assert calls == {"decode_pixels": 2}  # each frame's pixels once, its header never
     again = spool.decoded.get(spool.entry(frames[1].sop_instance_uid)).frame
     assert again.header() == frames[1].header() and np.array_equal(again.pixels, frames[1].pixels)
