@@ -210,8 +210,8 @@ def test_a_spool_from_before_decoding_once_starts_and_is_measured(rendered, tmp_
         c, _ = loop.assembler.add(entry)
         due = loop.workflow.place(c, c.views[entry.sop_instance_uid])
     assert due
-    doc = loop.run(c).doc
-    assert doc["status"] == "measured", doc["reasons"]
+    result = loop.run(c).result
+    assert result.measured, result.reasons
     assert calls == {"decode_frame": 2, "decode_pixels": 2}  # once each, pixels included
     for name, pairing in pairings.items():
         sidecar = json.loads((tmp_path / "spool" / "instances" / name).read_text())
