@@ -314,28 +314,33 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     ends = (s.min(), s.max())
     sides = long & (s > ends[0] + width) & (s < ends[1] - width)
     top = facing > 0
-    steps, outward = [], []
+    steps: list[float | None] = []
+    outward: list[float] = []
     for sign, side in ((1.0, sides & top), (-1.0, sides & ~top)):
         order = np.argsort(s[side])
         found = _line_step(s[side][order], o[side][order], max(5, int(width)))
-        seen = found is not None and abs(found[1]) >= min_step
-        steps.append(found[0] if seen else None)
-        outward.append(sign * found[1] if seen else 0.0)
+        if found is not None and abs(found[1]) >= min_step:
+            steps.append(found[0])
+            outward.append(sign * found[1])
+        else:
+            steps.append(None)
+            outward.append(0.0)
+    known = [at for at in steps if at is not None]
     overlap = "staggered"
-    if steps == [None, None]:
+    if not known:
         # The edges coincide. Two pins of one model project to nearly equal lengths, so the
         # middle of the union lies in their overlap: each pin owns the half beyond it.
-        steps, overlap = [0.5 * (ends[0] + ends[1])] * 2, "coincident"
-        spans = ((ends[0], steps[0]), (steps[0], ends[1]))
-    elif None in steps:
-        k = 0 if steps[0] is not None else 1
-        at = steps[k]
+        middle = 0.5 * (ends[0] + ends[1])
+        steps, overlap = [middle, middle], "coincident"
+        spans = ((ends[0], middle), (middle, ends[1]))
+    elif len(known) == 1:
+        k, at = (0 if steps[0] is not None else 1), known[0]
         if outward[k] > 0:  # the second pin is outward: it begins here
             spans = ((ends[0], max(at, ends[0] + _LENGTH_SHARE * (ends[1] - at))), (at, ends[1]))
         else:  # the first pin is outward: it ends here
             spans = ((ends[0], at), (min(at, ends[1] - _LENGTH_SHARE * (at - ends[0])), ends[1]))
     else:
-        spans = ((ends[0], max(steps)), (min(steps), ends[1]))
+        spans = ((ends[0], max(known)), (min(known), ends[1]))
     # On a side with a step a pin owns its part of that side; without one, the two pins'
     # edges coincide there and each owns the side over its span.
     mine = []
@@ -608,7 +613,8 @@ def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig, expected: np.
     # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
     # its seeds down to half of its own peak excess where that is below _PIN_GROW_TO.
     strong = excess > config.pin_threshold
-    count, seeds = cv2.connectedComponents(strong.astype(np.uint8), connectivity=8)
+    count, components = cv2.connectedComponents(strong.astype(np.uint8), connectivity=8)
+    seeds = np.asarray(components, np.int32)
     peak = np.zeros(count, np.float32)
     np.maximum.at(peak, seeds[strong], excess[strong])
     reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))

@@ -218,19 +218,20 @@ def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
     if polarity in ("dark", "bright"):
         sign = 1 if polarity == "dark" else -1
     else:
-        sign = None
+        guess: int | None = None
         if scene == "phantom" and outside is not None:
-            sign = 1 if float(np.median(data[lit])) >= outside else -1
-        rim = _periphery_asymmetry(data, lit, centre, radius) if sign is None else 0.0
-        if sign is None:
-            sign = int(np.sign(rim)) if abs(rim) >= _RIM_DECISIVE else polarity_sign(data, lit)
-        if sign is None and abs(rim) >= _RIM_WEAK:
-            sign = int(np.sign(rim))
-        if sign is None and outside is not None:
-            sign = 1 if float(np.median(data[lit])) >= outside else -1
-        if sign is None:
+            guess = 1 if float(np.median(data[lit])) >= outside else -1
+        rim = _periphery_asymmetry(data, lit, centre, radius) if guess is None else 0.0
+        if guess is None:
+            guess = int(np.sign(rim)) if abs(rim) >= _RIM_DECISIVE else polarity_sign(data, lit)
+        if guess is None and abs(rim) >= _RIM_WEAK:
+            guess = int(np.sign(rim))
+        if guess is None and outside is not None:
+            guess = 1 if float(np.median(data[lit])) >= outside else -1
+        if guess is None:
             raise FieldError("the polarity of the frame cannot be told (no steel stands out); "
                              "configure it")
+        sign = guess
     inside = data[lit]
     level_lo, level_hi = float(inside.min()), float(inside.max())
     if outside is not None and sign * (np.median(inside) - outside) > 0:
