@@ -511,18 +511,19 @@ def _straight_pieces(shadow: np.ndarray, widths: _PinWidths, config: ContourConf
     bar is wide, in the direction of the bar, taken greedily from the largest."""
     half = cv2.resize(shadow.astype(np.uint8), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_NEAREST)
     length = int(config.pin_width_px[1]) | 1  # twice the widest pin, at half size
-    pieces: list[np.ndarray] = []
+    pieces: list[tuple[int, np.ndarray, int]] = []  # (area, labels, label) at half size
     for angle in _LINE_ANGLES_DEG:
         opened = cv2.morphologyEx(half, cv2.MORPH_OPEN, _line(length, angle))
-        count, labels = cv2.connectedComponents(opened, connectivity=8)
-        pieces += [labels == k for k in range(1, count)]
-    pieces.sort(key=lambda m: -int(m.sum()))
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(opened, connectivity=8)
+        pieces += [(int(stats[k, cv2.CC_STAT_AREA]), labels, k) for k in range(1, count)]
+    pieces.sort(key=lambda p: -p[0])
     taken: list[np.ndarray] = []
     found: list[np.ndarray] = []
-    for piece in pieces:
-        if len(found) == _CROSSED_PIECES:
+    for area, labels, k in pieces:
+        if len(found) == _CROSSED_PIECES or 4 * area < config.pin_min_area_px:
             break
-        if any((piece & other).sum() > _PIECE_OVERLAP * piece.sum() for other in taken):
+        piece = labels == k
+        if any((piece & other).sum() > _PIECE_OVERLAP * area for other in taken):
             continue
         full = shadow & (cv2.resize(piece.astype(np.uint8), shadow.shape[::-1],
                                     interpolation=cv2.INTER_NEAREST) > 0)
@@ -543,9 +544,12 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
     count = len(good)
     good = good.copy()
     added: list[bool] = []
+    # The least pin-shaped bar: one pin's least width, as long as a pin must be, filled.
+    least_length = _PIN_ELONGATION * widths.least
+    least_area = max(2 * config.pin_min_area_px, _PIN_FILL * least_length * widths.least)
     for label in range(1, count):
         x, y, w, h, area = stats[label]
-        if area < 2 * config.pin_min_area_px:
+        if area < least_area or max(w, h) < least_length:
             continue
         window = labels[y:y + h, x:x + w]
         pieces = _straight_pieces(window == label, widths, config)
