@@ -21,9 +21,10 @@ import time
 import uuid
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from pydicom.dataset import Dataset
@@ -44,7 +45,7 @@ from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
 from slamtka.service.plans import PlanStore
-from slamtka.service.poses import ViewGeometry, planned_pins
+from slamtka.service.poses import InitialViews, ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.refusals import Refusal, RefusalCode
 from slamtka.service.results import MeasurementResult, build_result
@@ -67,6 +68,7 @@ from slamtka.solver.slam import InitialGuess, SolveOutcome, SolverConfig, solve_
 __all__ = ["Pipeline", "RunOutcome", "plane_polygon", "result_uid", "PLANE_PATCH_HALF_MM"]
 
 log = logging.getLogger("slamtka.pipeline")
+_T = TypeVar("_T")
 PLANE_PATCH_HALF_MM = 30.0
 _PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
 _SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
@@ -96,6 +98,72 @@ class _ViewInput:
     @property
     def used(self) -> bool:
         return self.left_out is None
+
+
+@dataclass
+class _Run:
+    """One run's context: what it was given, and what each stage adds for the next."""
+
+    case: Case
+    views: list[View]
+    run_id: str
+    folder: Path
+    recorder: CaseRecorder
+    on_output: Callable[[OutgoingObject], object]
+    measurement: dict | None  # its place in the re-measurement loop
+    when: datetime  # dates the DICOM content
+    min_separation_deg: float
+    started: float
+    reasons: list[str] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    items: list[_ViewInput] = field(default_factory=list)
+    plan: Plan | None = None
+    refusal: Refusal | None = None  # the pipeline's own, before a solve
+    start: InitialViews | None = None
+    observations: list[ViewObservation] = field(default_factory=list)
+    initial: InitialGuess | None = None
+    outcome: SolveOutcome | None = None
+    result: MeasurementResult | None = None
+    objects: list[OutgoingObject] = field(default_factory=list)
+    dicom_error: str | None = None
+
+    @property
+    def usable(self) -> list[_ViewInput]:
+        return [i for i in self.items if i.used]
+
+    # What a stage may rely on, given the stages before it ran (else the run was refused).
+    @property
+    def planned(self) -> Plan:
+        return _made(self.plan)
+
+    @property
+    def started_from(self) -> InitialViews:
+        return _made(self.start)
+
+    @property
+    def solved(self) -> SolveOutcome:
+        return _made(self.outcome)
+
+    @property
+    def built(self) -> MeasurementResult:
+        return _made(self.result)
+
+
+def _made(value: _T | None) -> _T:
+    """A member of the run context that an earlier stage has made."""
+    if value is None:
+        raise RuntimeError("a pipeline stage ran before the stage that makes its input")
+    return value
+
+
+@dataclass(frozen=True)
+class _Stage:
+    """One unit of a run over its context; the runner records, times and orders them."""
+
+    name: str  # as the recording names it (service.recording.STAGES)
+    run: Callable[[Pipeline, _Run], None]
+    after_refusal: bool = False  # whether it runs for a run already refused
+    describe: Callable[[_Run], str] = lambda run: ""
 
 
 def result_uid(case_id: str, run_id: str, what: str) -> str:
@@ -270,136 +338,83 @@ class Pipeline:
              recorder: CaseRecorder, started: float,
              on_output: Callable[[OutgoingObject], object], measurement: dict | None,
              when: datetime, min_separation_deg: float) -> RunOutcome:
-        timings: dict[str, float] = {}
-        reasons: list[str] = []
-        clock = [time.perf_counter()]
-
-        def lap(name: str) -> None:
-            now = time.perf_counter()
-            timings[f"{name}_s"] = now - clock[0]
-            clock[0] = now
-
-        items = self._frames(views, recorder, reasons)
-        lap("frames")
-        self._check_calibration(items, recorder, reasons)
-        lap("calibration")
-        plan, solved, observations, initial = None, None, [], None
-        refusal: Refusal | None = None
-        try:
-            plan = self.plans.find(case.patient_id, case.laterality)
-        except ValueError as exc:
-            refusal = Refusal.of(RefusalCode.NO_PLAN, str(exc))
-        usable = [i for i in items if i.used]
-        if plan is not None and len(usable) < 2:
-            refusal = Refusal.of(
-                Why.TOO_FEW_VIEWS if self.calibration is not None
-                else RefusalCode.NO_CALIBRATION,
-                f"only {len(usable)} usable view(s); at least two are needed")
-        elif plan is not None:
-            solved, observations, initial = self._measure(plan, usable, recorder, reasons, lap)
-        if isinstance(solved, Refusal):
-            refusal, outcome = solved, None
-        else:
-            outcome = solved
-
-        recorder.stage("results")
-        refused = self._refused_sources(case, len(items), reasons)
-        used = {i.view_id for i in items if i.used and i.contours is not None}
-        uids = {key: result_uid(case.case_id, run_id, key)
-                for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
-        timings["total_s"] = time.perf_counter() - started
-        if measurement is not None and outcome is not None and outcome.status == "measured":
-            measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
-                plan, outcome, observations)}
-        result = build_result(
-            case_id=case.case_id, run_id=run_id,
-            case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
-                  "laterality": case.laterality},
-            sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used, i.left_out)
-                     for i in items] + refused,
-            outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=observations,
-            calibration=None if self.calibration is None else {
-                "id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
-            initial=initial, refusal=refusal, reasons=reasons, timings=timings,
-            outputs={"folder": str(folder), "recording": str(folder / "recording.rrd"),
-                     "sr_sop_instance_uid": uids["sr"],
-                     "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
-            measurement=measurement)
-        dicom_error = None
-        try:
-            built = self._build_dicom(result, items, plan, outcome, observations, uids, when,
-                                      min_separation_deg)
-            objects = [self._save(ds, folder / name, kind, sop_class)
-                       for ds, name, kind, sop_class in built]
-        except Exception as exc:  # values that passed receipt must not cost the result
-            log.exception("case %s run %s: building the DICOM results failed", case.case_id,
-                          run_id)
-            dicom_error = f"{type(exc).__name__}: {exc}"[:500]
-            objects = []
-        for obj in objects:  # every object built and on disk before any is sent
-            on_output(obj)
-        lap("results")
-        timings["total_s"] = time.perf_counter() - started
-        result = result.completed(timings, dicom_error)
+        run = _Run(case, views, run_id, folder, recorder, on_output, measurement, when,
+                   min_separation_deg, started)
+        for stage in _STAGES:
+            if run.refusal is not None and not stage.after_refusal:
+                continue
+            recorder.stage(stage.name, stage.describe(run))
+            begun = time.perf_counter()
+            stage.run(self, run)
+            run.timings[f"{stage.name}_s"] = time.perf_counter() - begun
+        run.timings["total_s"] = time.perf_counter() - started
+        result = run.built.completed(run.timings, run.dicom_error)
         doc = result.to_document()
         recorder.result(doc)
         if result.angles is not None:
             recorder.angles(result.angles.ctr_deg, result.angles.str_deg)
         write_json_atomic(folder / "result.json", doc)  # last: marks the run complete
-        return RunOutcome(result, folder, objects)
+        return RunOutcome(result, folder, run.objects)
 
-    def _frames(self, views: list[View], recorder: CaseRecorder,
-                reasons: list[str]) -> list[_ViewInput]:
-        recorder.stage("frames", f"{len(views)} views")
-        items = []
-        for k, view in enumerate(views, start=1):
+    def _frames(self, run: _Run) -> None:
+        for k, view in enumerate(run.views, start=1):
             decoded = self.spool.decoded.get(view.entry)
             item = _ViewInput(view, f"view{k}", decoded.frame, sanitised_header(decoded.header))
-            recorder.frame(item.view_id, item.frame, view.positioner)
-            recorder.encoder(item.view_id, view.pairing.initialisation, view.pairing.encoder_reading)
+            run.recorder.frame(item.view_id, item.frame, view.positioner)
+            run.recorder.encoder(item.view_id, view.pairing.initialisation,
+                                 view.pairing.encoder_reading)
             if view.pairing.angle_check and view.pairing.angle_check.get("status") == "disagrees":
-                reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")
+                run.reasons.append(f"{item.view_id}: {view.pairing.angle_check['message']}")
             if view.pairing.clock is not None:
-                reasons.append(f"{item.view_id}: {view.pairing.clock['message']}")
-            items.append(item)
-        return items
+                run.reasons.append(f"{item.view_id}: {view.pairing.clock['message']}")
+            run.items.append(item)
 
-    def _check_calibration(self, items: list[_ViewInput], recorder: CaseRecorder,
-                           reasons: list[str]) -> None:
+    def _calibration(self, run: _Run) -> None:
         """Pick the run's calibration (per C-arm and detector field); views it does not fit
         are left out, saying why."""
         selected = []
-        for item in items:
+        for item in run.items:
             calibration, problem = self.calibrations.select(item.header, item.frame)
             selected.append((calibration, problem or calibration.check_frame(item.frame)))
         self.calibration = choose_for_run(selected)
-        recorder.stage("calibration", self.calibration.calibration_id if self.calibration else "none")
         if self.calibration is not None:
-            recorder.calibration(self.calibration.document())
-        for item, (calibration, problem) in zip(items, selected):
+            run.recorder.calibration(self.calibration.document())
+        for item, (calibration, problem) in zip(run.items, selected):
             if problem is None and calibration is not self.calibration:
                 problem = (f"needs calibration {calibration.calibration_id}, the run uses "
                            f"{self.calibration.calibration_id} (views from two C-arms or fields)")
             if problem:
                 item.left_out = problem
-                reasons.append(f"{item.view_id}: {problem}")
+                run.reasons.append(f"{item.view_id}: {problem}")
 
-    def _measure(self, plan: Plan, usable: list[_ViewInput], recorder: CaseRecorder,
-                 reasons: list[str], lap: Callable[[str], None],
-                 ) -> tuple[SolveOutcome | Refusal, list[ViewObservation], InitialGuess]:
-        """Initial poses, contours and the joint solve of the usable views (or the refusal
-        of too few views with contours)."""
-        recorder.plan(plan)
-        recorder.stage("initial_poses")
-        start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
-                                            [i.view.positioner for i in usable])
+    def _plan(self, run: _Run) -> None:
+        """The patient's plan; a run without one, or with fewer than two usable views, is
+        refused here."""
+        try:
+            run.plan = self.plans.find(run.case.patient_id, run.case.laterality)
+        except ValueError as exc:
+            run.refusal = Refusal.of(RefusalCode.NO_PLAN, str(exc))
+            return
+        run.recorder.plan(run.plan)
+        if len(run.usable) < 2:
+            run.refusal = Refusal.of(
+                Why.TOO_FEW_VIEWS if self.calibration is not None else RefusalCode.NO_CALIBRATION,
+                f"only {len(run.usable)} usable view(s); at least two are needed")
+
+    def _initial_poses(self, run: _Run) -> None:
+        usable, plan = run.usable, run.planned
+        run.start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
+                                                [i.view.positioner for i in usable])
+        run.recorder.initial([i.view_id for i in usable], run.start.T_cam_tibia,
+                             list(self._planned_pins(plan)), [self.calibration.camera] * len(usable))
+
+    def _contours(self, run: _Run) -> None:
+        """Each usable view's contours (drawn by hand, or extracted at its initial pose) and
+        the solver's views of them; fewer than two views with contours are refused."""
+        plan, start = run.planned, run.started_from
         pins = self._planned_pins(plan)
-        recorder.initial([i.view_id for i in usable], start.T_cam_tibia, list(pins),
-                         [self.calibration.camera] * len(usable))
-        lap("initial_poses")
-
-        recorder.stage("contours")
         manual = self._manual_contours()
+        usable = run.usable
         for item, T in zip(usable, start.T_cam_tibia):
             uid = item.view.sop_instance_uid
             if uid in manual:
@@ -409,33 +424,73 @@ class Pipeline:
                                                                    item.frame, T, pins)
             if item.contours is None:
                 item.left_out = item.contour_source
-                reasons.append(f"{item.view_id}: {item.contour_source}")
+                run.reasons.append(f"{item.view_id}: {item.contour_source}")
                 item.contour_source = None
             else:
-                recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
+                run.recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
         kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
         cal = self.calibration
-        observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,
-                                               cal.distort_points)
-                        for i, _ in kept if i.contours is not None]
-        initial = InitialGuess(tuple(T for _, T in kept), pins, start.odometry_sigma)
-        recorder.solver_inputs(self._solver_inputs(plan, observations, initial))
-        lap("contours")
-        if len(observations) < 2:
-            return Refusal.of(RefusalCode.TOO_FEW_CONTOURS,
-                              f"only {len(observations)} view(s) with contours; at least two "
-                              "are needed"), observations, initial
+        run.observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,
+                                                   cal.distort_points)
+                            for i, _ in kept if i.contours is not None]
+        run.initial = InitialGuess(tuple(T for _, T in kept), pins, start.odometry_sigma)
+        run.recorder.solver_inputs(self._solver_inputs(plan, run.observations, run.initial))
+        if len(run.observations) < 2:
+            run.refusal = Refusal.of(RefusalCode.TOO_FEW_CONTOURS,
+                                     f"only {len(run.observations)} view(s) with contours; at "
+                                     "least two are needed")
 
-        recorder.stage("solve")
-        outcome = solve_joint(plan, observations, initial, _SOLVER_CONFIG,
-                              callback=recorder.iteration)
-        lap("solve")
-        recorder.stage("plane_and_angles", outcome.status)
+    def _solve(self, run: _Run) -> None:
+        run.outcome = solve_joint(run.planned, run.observations, _made(run.initial), _SOLVER_CONFIG,
+                                  callback=run.recorder.iteration)
+
+    def _plane_and_angles(self, run: _Run) -> None:
+        """The solved poses, pins and plane into the recording (the solver measured them)."""
+        outcome = run.solved
         polygon = (None if outcome.plane is None
                    else plane_polygon(outcome.plane.point, outcome.plane.normal))
-        recorder.final([o.view_id for o in observations], outcome.T_cam_tibia,
-                       outcome.T_tibia_pin, plan.pin_mesh, polygon, outcome.residual_rms)
-        return outcome, observations, initial
+        run.recorder.final([o.view_id for o in run.observations], outcome.T_cam_tibia,
+                           outcome.T_tibia_pin, run.planned.pin_mesh, polygon, outcome.residual_rms)
+
+    def _results(self, run: _Run) -> None:
+        """The validated result, then the SR and SCs, every one on disk before any is sent."""
+        case, items, plan, outcome = run.case, run.items, run.plan, run.outcome
+        refused = self._refused_sources(case, len(items), run.reasons)
+        used = {i.view_id for i in items if i.used and i.contours is not None}
+        uids = {key: result_uid(case.case_id, run.run_id, key)
+                for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
+        run.timings["total_s"] = time.perf_counter() - run.started
+        measurement = run.measurement
+        if measurement is not None and outcome is not None and outcome.status == "measured":
+            measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
+                run.planned, outcome, run.observations)}
+        run.result = build_result(
+            case_id=case.case_id, run_id=run.run_id,
+            case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
+                  "laterality": case.laterality},
+            sources=[self._source(i.view, i.view_id, i.contour_source, i.view_id in used, i.left_out)
+                     for i in items] + refused,
+            outcome=outcome, method=_SOLVER_CONFIG.method, plan=plan, views=run.observations,
+            calibration=None if self.calibration is None else {
+                "id": self.calibration.calibration_id, "sha256": self.calibration.sha256},
+            initial=run.initial, refusal=run.refusal,
+            reasons=run.reasons, timings=run.timings,
+            outputs={"folder": str(run.folder), "recording": str(run.folder / "recording.rrd"),
+                     "sr_sop_instance_uid": uids["sr"],
+                     "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
+            measurement=measurement)
+        try:
+            built = self._build_dicom(run.result, items, plan, outcome, run.observations, uids,
+                                      run.when, run.min_separation_deg)
+            run.objects = [self._save(ds, run.folder / name, kind, sop_class)
+                           for ds, name, kind, sop_class in built]
+        except Exception as exc:  # values that passed receipt must not cost the result
+            log.exception("case %s run %s: building the DICOM results failed", case.case_id,
+                          run.run_id)
+            run.dicom_error = f"{type(exc).__name__}: {exc}"[:500]
+            run.objects = []
+        for obj in run.objects:  # every object built and on disk before any is sent
+            run.on_output(obj)
 
     def _solver_inputs(self, plan: Plan, observations: list[ViewObservation],
                        initial: InitialGuess) -> dict:
@@ -588,3 +643,15 @@ class Pipeline:
 def _refusal_code(result: MeasurementResult) -> str:
     """The refusal code of a not-measured result (``other`` for one without a refusal)."""
     return RefusalCode.OTHER if result.refusal is None else result.refusal.code
+
+
+_STAGES = (
+    _Stage("frames", Pipeline._frames, describe=lambda run: f"{len(run.views)} views"),
+    _Stage("calibration", Pipeline._calibration),
+    _Stage("plan", Pipeline._plan),
+    _Stage("initial_poses", Pipeline._initial_poses),
+    _Stage("contours", Pipeline._contours),
+    _Stage("solve", Pipeline._solve),
+    _Stage("plane_and_angles", Pipeline._plane_and_angles, describe=lambda run: run.solved.status),
+    _Stage("results", Pipeline._results, after_refusal=True),
+)

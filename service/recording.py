@@ -41,8 +41,8 @@ from slamtka.solver.plan import Plan
 __all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
 
 APPLICATION_ID = "slamtka"
-STAGES = ("frames", "calibration", "initial_poses", "contours", "solve", "plane_and_angles",
-          "results")  # in the pipeline's order
+STAGES = ("frames", "calibration", "plan", "initial_poses", "contours", "solve",
+          "plane_and_angles", "results")  # in the pipeline's order
 _JSON_MEDIA = "application/json"
 _LABEL_COLOURS = {"bone": (255, 220, 0), "pin1": (0, 230, 255), "pin2": (255, 60, 255)}
 
