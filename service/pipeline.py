@@ -43,7 +43,7 @@ from slamtka.service.display import advice, change_line
 from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
-from slamtka.service.plans import PlanStore
+from slamtka.service.plans import PlanFinder
 from slamtka.service.poses import ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.refusals import Refusal, RefusalCode
@@ -120,7 +120,7 @@ def plane_polygon(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
 class Pipeline:
     """Runs cases; everything it needs is built once at service start."""
 
-    def __init__(self, spool: Spool, plans: PlanStore, calibrations, geometry: ViewGeometry,
+    def __init__(self, spool: Spool, plans: PlanFinder, calibrations, geometry: ViewGeometry,
                  output_root: Path, *, manual_contours_dir: Path | None = None,
                  institution: str = ""):
         """``calibrations``: a :class:`CalibrationSet` (per C-arm), or one calibration for all."""
