@@ -53,6 +53,7 @@ from slamtka.service.spool import Spool
 from slamtka.solver import kernels
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.calibration_file import Calibration
 from slamtka.solver.imaging.contours import (
     ContourError,
     ExtractedContours,
@@ -127,7 +128,7 @@ class Pipeline:
         self.spool, self.plans, self.geometry = spool, plans, geometry
         self.calibrations = (calibrations if isinstance(calibrations, CalibrationSet)
                              else CalibrationSet([], calibrations))
-        self.calibration = None  # of the run (or arriving view) being worked on
+        self.calibration: Calibration | None = None  # of the run (or arriving view) being worked on
         self.output_root = Path(output_root)
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
         self._extracted: OrderedDict[str, tuple[ExtractedContours | None, str]] = OrderedDict()
@@ -155,6 +156,13 @@ class Pipeline:
     def already_done(self, case: Case, views: list[View], run_id: str | None = None) -> bool:
         return (self.run_folder(case, views, run_id) / "result.json").is_file()
 
+    def _calibrated(self) -> Calibration:
+        """The calibration of the run (or arriving view) being worked on: a run reaches the
+        stages that need it only with one chosen (without, every view is left out)."""
+        if self.calibration is None:
+            raise RuntimeError("no C-arm calibration has been chosen for these views")
+        return self.calibration
+
     # -- stages ---------------------------------------------------------------------------
     def _manual_contours(self) -> dict[str, ExtractedContours]:
         """Hand-drawn contours (raw pixels) by SOP Instance UID (the documents' view_id)."""
@@ -168,9 +176,11 @@ class Pipeline:
                 log.error("ignoring manual contours: %s", exc)
                 continue
             for uid, contours in views.items():
-                found[uid] = contours if coordinates != "undistorted" else ExtractedContours(
-                    **{label: self.calibration.distort_points(points)
-                       for label, points in contours.as_dict().items()})
+                if coordinates == "undistorted":
+                    distort = self._calibrated().distort_points
+                    contours = ExtractedContours(distort(contours.bone), distort(contours.pin1),
+                                                 distort(contours.pin2))
+                found[uid] = contours
         return found
 
     def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
@@ -179,9 +189,10 @@ class Pipeline:
         uid = view.sop_instance_uid
         if uid not in self._extracted:
             try:
-                centres, width = plan.pin_shadows(self.calibration.camera, T_cam_tibia, pins)
+                calibration = self._calibrated()
+                centres, width = plan.pin_shadows(calibration.camera, T_cam_tibia, pins)
                 found = extract_contours(frame.pixels,
-                                         expected_pins=self.calibration.distort_points(centres),
+                                         expected_pins=calibration.distort_points(centres),
                                          expected_pin_width_px=width)
                 self._extracted[uid] = (found, "extracted")
             except ContourError as exc:
@@ -211,6 +222,7 @@ class Pipeline:
         """A view's contours as a run would use them (undistorted pixels) and their source,
         or None and why ("no plan" when the patient has none: nothing can be extracted)."""
         manual = self._manual_contours().get(view.sop_instance_uid)
+        raw: ExtractedContours | None
         if manual is not None:
             raw, source = manual, "manual"
         else:
@@ -229,7 +241,8 @@ class Pipeline:
             why = raw.diagnostics.get("missing", {})
             return None, f"{NO_CONTOURS} (fewer than two pins: " + "; ".join(
                 f"{label} {why.get(label, 'not found')}" for label in missing) + ")"
-        return {label: self.calibration.undistort_points(points)
+        calibration = self._calibrated()
+        return {label: calibration.undistort_points(points)
                 for label, points in raw.as_dict().items()}, source
 
     def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
@@ -283,7 +296,8 @@ class Pipeline:
         lap("frames")
         self._check_calibration(items, recorder, reasons)
         lap("calibration")
-        plan, solved, observations, initial = None, None, [], None
+        plan, solved, initial = None, None, None
+        observations: list[ViewObservation] = []
         refusal: Refusal | None = None
         try:
             plan = self.plans.find(case.patient_id, case.laterality)
@@ -308,7 +322,8 @@ class Pipeline:
         uids = {key: result_uid(case.case_id, run_id, key)
                 for key in ("sr", "sr-series", "sc-series", *(i.view_id for i in items))}
         timings["total_s"] = time.perf_counter() - started
-        if measurement is not None and outcome is not None and outcome.status == "measured":
+        if (measurement is not None and plan is not None and outcome is not None
+                and outcome.status == "measured"):
             measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
                 plan, outcome, observations)}
         result = build_result(
@@ -371,15 +386,18 @@ class Pipeline:
         selected = []
         for item in items:
             calibration, problem = self.calibrations.select(item.header, item.frame)
-            selected.append((calibration, problem or calibration.check_frame(item.frame)))
-        self.calibration = choose_for_run(selected)
-        recorder.stage("calibration", self.calibration.calibration_id if self.calibration else "none")
-        if self.calibration is not None:
-            recorder.calibration(self.calibration.document())
+            if calibration is not None and problem is None:
+                problem = calibration.check_frame(item.frame)
+            selected.append((calibration, problem))
+        chosen = self.calibration = choose_for_run(selected)
+        recorder.stage("calibration", chosen.calibration_id if chosen else "none")
+        if chosen is not None:
+            recorder.calibration(chosen.document())
         for item, (calibration, problem) in zip(items, selected):
-            if problem is None and calibration is not self.calibration:
+            if (problem is None and calibration is not None and chosen is not None
+                    and calibration is not chosen):
                 problem = (f"needs calibration {calibration.calibration_id}, the run uses "
-                           f"{self.calibration.calibration_id} (views from two C-arms or fields)")
+                           f"{chosen.calibration_id} (views from two C-arms or fields)")
             if problem:
                 item.left_out = problem
                 reasons.append(f"{item.view_id}: {problem}")
@@ -394,8 +412,9 @@ class Pipeline:
         start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
                                             [i.view.positioner for i in usable])
         pins = self._planned_pins(plan)
+        cal = self._calibrated()
         recorder.initial([i.view_id for i in usable], start.T_cam_tibia, list(pins),
-                         [self.calibration.camera] * len(usable))
+                         [cal.camera] * len(usable))
         lap("initial_poses")
 
         recorder.stage("contours")
@@ -414,7 +433,6 @@ class Pipeline:
             else:
                 recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
         kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
-        cal = self.calibration
         observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,
                                                cal.distort_points)
                         for i, _ in kept if i.contours is not None]
@@ -442,7 +460,7 @@ class Pipeline:
         """Exactly what the solver was given (float64 JSON), for ``slamtka replay --resolve``."""
         from slamtka.solver.sdf import mesh_digest
 
-        return {"camera": self.calibration.camera.to_json(),
+        return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
                            "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
@@ -487,17 +505,8 @@ class Pipeline:
                      uids: dict, when: datetime, min_separation_deg: float
                      ) -> list[tuple[Dataset, str, str, str]]:
         """The run's SR and SCs, built in memory: (dataset, file name, kind, SOP class)."""
-        measured = None
         posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
-        if result.measured:
-            pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
-            axis = plan.landmarks.T_tibia_anat().R[:, 2]
-            angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
-                      for T in outcome.T_tibia_pin]
-            measured = SrMeasurement(result.angles, result.deviation, SrGeometry(
-                tibia_frame_of_reference_uid(result.bone_mesh_sha256),
-                plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
-                plan.side))
+        measured = self._sr_measurement(result, plan, outcome)
         notes = self._notes(result, min_separation_deg)
         sr = build_sr([i.header for i in items], measured, side=result.side,
                       version=result.software_version, series_uid=uids["sr-series"],
@@ -512,8 +521,8 @@ class Pipeline:
                                 within_tolerance=within)
             T = posed.get(item.view_id)
             orientation = None
-            if T is not None and plan is not None:
-                if measured is not None:
+            if T is not None and plan is not None and outcome is not None:
+                if measured is not None and outcome.plane is not None:
                     overlay.plane_px = self._project(T, plane_polygon(outcome.plane.point,
                                                                       outcome.plane.normal))
                 overlay.pin_axes_px = [self._project(T, pin_axis_points(P, plan.pin_length())[[0, -1]])
@@ -527,6 +536,23 @@ class Pipeline:
                           content_datetime=when)
             built.append((sc, f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
         return built
+
+    @staticmethod
+    def _sr_measurement(result: MeasurementResult, plan: Plan | None,
+                        outcome: SolveOutcome | None) -> SrMeasurement | None:
+        """The SR's measurement of a measured run: angles, plane and pins (else None)."""
+        if (not result.measured or plan is None or outcome is None or outcome.plane is None
+                or result.angles is None or result.deviation is None
+                or result.bone_mesh_sha256 is None):
+            return None
+        pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
+        axis = plan.landmarks.T_tibia_anat().R[:, 2]
+        angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
+                  for T in outcome.T_tibia_pin]
+        return SrMeasurement(result.angles, result.deviation, SrGeometry(
+            tibia_frame_of_reference_uid(result.bone_mesh_sha256),
+            plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
+            plan.side))
 
     def _pin_misfit(self, plan: Plan, outcome: SolveOutcome,
                     observations: list[ViewObservation]) -> float:
@@ -558,8 +584,9 @@ class Pipeline:
         return notes
 
     def _project(self, T_cam_tibia: Pose, points_tibia: np.ndarray) -> np.ndarray:
-        ideal = self.calibration.camera.project(T_cam_tibia.apply(points_tibia))
-        return self.calibration.distort_points(ideal)
+        calibration = self._calibrated()
+        ideal = calibration.camera.project(T_cam_tibia.apply(points_tibia))
+        return calibration.distort_points(ideal)
 
     @staticmethod
     def _summary_lines(result: MeasurementResult, min_separation_deg: float) -> list[str]:
