@@ -70,6 +70,7 @@ __all__ = ["Pipeline", "RunOutcome", "plane_polygon", "result_uid", "PLANE_PATCH
 log = logging.getLogger("slamtka.pipeline")
 PLANE_PATCH_HALF_MM = 30.0
 _PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
+_NO_CALIBRATION = "the frame does not match the C-arm calibration"
 _SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
 _SC_CLASS = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
 _RESULT_UID_NAMESPACE = uuid.UUID("5f0c3a52-7b1e-4c55-9d0e-51a3c0a7e2b4")  # slamtka results
@@ -164,9 +165,10 @@ class Pipeline:
         return self.calibration
 
     # -- stages ---------------------------------------------------------------------------
-    def _manual_contours(self) -> dict[str, ExtractedContours]:
-        """Hand-drawn contours (raw pixels) by SOP Instance UID (the documents' view_id)."""
-        found: dict[str, ExtractedContours] = {}
+    def _manual_contours(self) -> dict[str, tuple[str, ExtractedContours]]:
+        """Hand-drawn contours by SOP Instance UID (the documents' view_id), with their
+        coordinates ("raw" or "undistorted")."""
+        found: dict[str, tuple[str, ExtractedContours]] = {}
         if self.manual_contours_dir is None or not self.manual_contours_dir.is_dir():
             return found
         for path in sorted(self.manual_contours_dir.glob("*.json")):
@@ -176,12 +178,27 @@ class Pipeline:
                 log.error("ignoring manual contours: %s", exc)
                 continue
             for uid, contours in views.items():
-                if coordinates == "undistorted":
-                    distort = self._calibrated().distort_points
-                    contours = ExtractedContours(distort(contours.bone), distort(contours.pin1),
-                                                 distort(contours.pin2))
-                found[uid] = contours
+                found[uid] = (coordinates, contours)
         return found
+
+    def _raw_pixels(self, drawn: tuple[str, ExtractedContours]) -> ExtractedContours:
+        """Hand-drawn contours in raw pixels: undistorted ones are distorted with the current
+        calibration (the run's, or the arriving view's)."""
+        coordinates, contours = drawn
+        if coordinates != "undistorted":
+            return contours
+        distort = self._calibrated().distort_points
+        return ExtractedContours(distort(contours.bone), distort(contours.pin1), distort(contours.pin2))
+
+    def _fit_calibration(self, view: View) -> Frame | None:
+        """Make the calibration that fits the view's frame the current one; the frame, or
+        None when no calibration fits it."""
+        decoded = self.spool.decoded.get(view.entry)
+        calibration, _ = self.calibrations.select(decoded.header, decoded.frame)
+        if calibration is None or calibration.check_frame(decoded.frame) is not None:
+            return None
+        self.calibration = calibration
+        return decoded.frame
 
     def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
                  pins: tuple[Pose, Pose]) -> tuple[ExtractedContours | None, str]:
@@ -211,28 +228,28 @@ class Pipeline:
         except ValueError:
             return
         T = self.geometry.initial_views(plan, [view.pairing], [view.positioner]).T_cam_tibia[0]
-        decoded = self.spool.decoded.get(view.entry)
-        frame = decoded.frame
-        calibration, _ = self.calibrations.select(decoded.header, frame)
-        if calibration is not None and calibration.check_frame(frame) is None:
-            self.calibration = calibration
+        frame = self._fit_calibration(view)
+        if frame is not None:
             self._extract(plan, view, frame, T, self._planned_pins(plan))
 
     def view_contours(self, case: Case, view: View) -> tuple[dict[str, np.ndarray] | None, str]:
         """A view's contours as a run would use them (undistorted pixels) and their source,
         or None and why ("no plan" when the patient has none: nothing can be extracted)."""
-        manual = self._manual_contours().get(view.sop_instance_uid)
+        drawn = self._manual_contours().get(view.sop_instance_uid)
         raw: ExtractedContours | None
-        if manual is not None:
-            raw, source = manual, "manual"
+        if drawn is not None:
+            # Undistorted with this view's calibration, not whichever was current (none yet
+            # after a start).
+            if self._fit_calibration(view) is None:
+                return None, _NO_CALIBRATION
+            raw, source = self._raw_pixels(drawn), "manual"
         else:
             try:
                 self.plans.find(case.patient_id, case.laterality)
             except ValueError:
                 return None, "no plan"
             self.prepare(case, view)
-            raw, source = self._extracted.get(view.sop_instance_uid, (
-                None, "the frame does not match the C-arm calibration"))
+            raw, source = self._extracted.get(view.sop_instance_uid, (None, _NO_CALIBRATION))
         if raw is None:
             return None, source
         missing = [label for label, points in (("pin1", raw.pin1), ("pin2", raw.pin2))
@@ -422,7 +439,7 @@ class Pipeline:
         for item, T in zip(usable, start.T_cam_tibia):
             uid = item.view.sop_instance_uid
             if uid in manual:
-                item.contours, item.contour_source = manual[uid], "manual"
+                item.contours, item.contour_source = self._raw_pixels(manual[uid]), "manual"
             else:
                 item.contours, item.contour_source = self._extract(plan, item.view,
                                                                    item.frame, T, pins)
