@@ -237,7 +237,7 @@ class MotionScript:
         here, there = table[k], table[(k + 1) % len(self.views)]
         return here + (there - here) * (0.5 * (1.0 - np.cos(np.pi * frac)))[:, None]
 
-    def flags(self, t: np.ndarray) -> np.ndarray:
+    def flags(self, t: float | np.ndarray) -> np.ndarray:
         """Status flags at ``t``: MOVING between views, XRAY_ON mid-hold."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         _, _, into = self._phase(t)
@@ -422,20 +422,20 @@ class SimulatedCArm:
 
     # -- the device loop --------------------------------------------------------------------
     def _run(self) -> None:
-        spec = self.faults
-        next_stall = self.boot_monotonic + spec.stall[1] if spec.stall else None
-        next_disconnect = self.boot_monotonic + spec.disconnect[1] if spec.disconnect else None
+        stall, disconnect = self.faults.stall, self.faults.disconnect
+        next_stall = self.boot_monotonic + stall[1] if stall else None
+        next_disconnect = self.boot_monotonic + disconnect[1] if disconnect else None
         try:
             while True:
                 now = time.monotonic()
-                if next_stall is not None and now >= next_stall:
-                    self._stall(now, spec.stall[0])
-                    next_stall += spec.stall[1]
-                if next_disconnect is not None and now >= next_disconnect and self.present:
+                if stall and next_stall is not None and now >= next_stall:
+                    self._stall(now, stall[0])
+                    next_stall += stall[1]
+                if disconnect and next_disconnect is not None and now >= next_disconnect and self.present:
                     self._close_pty()
                     self.stats.vanishes += 1
-                    self._absent_until = now + spec.disconnect[0]
-                    next_disconnect += spec.disconnect[1]
+                    self._absent_until = now + disconnect[0]
+                    next_disconnect += disconnect[1]
                 if self._absent_until is not None and now >= self._absent_until and not self.present:
                     self._open_pty()
                     self._absent_until = None

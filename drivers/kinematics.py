@@ -74,6 +74,12 @@ class JointReading:
     def value(self, axis: str) -> float | None:
         return getattr(self, JOINT_FIELD[axis])
 
+    def chain_value(self, axis: str) -> float:
+        """The value of a chain joint (one of CHAIN_AXES), which, unlike the SID, is always set."""
+        if axis not in CHAIN_AXES:
+            raise ValueError(f"{axis!r} is not a chain axis; chain axes: {CHAIN_AXES}")
+        return float(getattr(self, JOINT_FIELD[axis]))
+
     def axes(self) -> dict[str, float]:
         """Axis name to value, leaving out an unset SID."""
         return {a: v for a in AXIS_UNITS if (v := self.value(a)) is not None}
@@ -197,7 +203,7 @@ class CArmKinematics:
     def check(self, joints: JointReading) -> None:
         """Raise ValueError naming the first joint value outside its limits."""
         for j in self.chain:
-            value = joints.value(j.axis)
+            value = joints.chain_value(j.axis)
             if not j.limits[0] <= value <= j.limits[1]:
                 raise ValueError(f"{j.axis} = {value:g} {AXIS_UNITS[j.axis]} is outside the C-arm's "
                                  f"range [{j.limits[0]:g}, {j.limits[1]:g}]")
@@ -214,7 +220,7 @@ class CArmKinematics:
 
     def vector(self, joints: JointReading) -> np.ndarray:
         """The chain joints' values in chain order."""
-        return np.array([joints.value(j.axis) for j in self.chain])
+        return np.array([joints.chain_value(j.axis) for j in self.chain])
 
     def with_vector(self, joints: JointReading, values: np.ndarray) -> JointReading:
         return replace(joints, **{JOINT_FIELD[j.axis]: float(v) for j, v in zip(self.chain, values)})
@@ -224,7 +230,7 @@ class CArmKinematics:
         """Pose of the C (the frame that carries source and detector) in ``carm``."""
         T = Pose.identity()
         for j in self.chain:
-            T = T @ j.transform(joints.value(j.axis))
+            T = T @ j.transform(joints.chain_value(j.axis))
         return T
 
     def T_carm_cam(self, joints: JointReading) -> Pose:
@@ -234,8 +240,8 @@ class CArmKinematics:
 
     def source_pose(self, joints: JointReading) -> Pose:
         """:meth:`T_carm_cam` without the range check (for derivatives at the limits)."""
-        mount = Pose(rotation_about([0.0, 0.0, 1.0], np.radians(self.detector_roll_deg)),
-                     [0.0, 0.0, -self.source_to_isocentre_mm])
+        mount = Pose(rotation_about(np.array([0.0, 0.0, 1.0]), np.radians(self.detector_roll_deg)),
+                     np.array([0.0, 0.0, -self.source_to_isocentre_mm]))
         return self.T_carm_C(joints) @ mount
 
     def isocentre(self, joints: JointReading) -> np.ndarray:

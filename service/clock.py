@@ -20,12 +20,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from typing import Protocol
 
-from slamtka.drivers.encoder_link import EncoderLink
 from slamtka.drivers.kinematics import AngleCheck, CArmKinematics, PatientSetup, check_dicom_angles
 from slamtka.drivers.reading_history import EncoderReading
 
-__all__ = ["ClockCheck", "review_pairing"]
+__all__ = ["ClockCheck", "ReadingSource", "review_pairing"]
+
+
+class ReadingSource(Protocol):
+    """Where a frame's encoder reading comes from: the live C-arm link
+    (:class:`drivers.encoder_link.EncoderLink`) or, offline, readings from a file."""
+
+    def reading_at(self, t_utc: datetime, max_age_s: float | None = None) -> EncoderReading | None:
+        ...
+
+    def readings_between(self, t0_utc: datetime, t1_utc: datetime) -> list[EncoderReading]:
+        ...
 
 
 @dataclass(frozen=True)
@@ -49,7 +60,7 @@ def _symptoms(reading: EncoderReading, taken: set[int], check) -> list[str]:
     return found
 
 
-def review_pairing(link: EncoderLink, kinematics: CArmKinematics, setup: PatientSetup,
+def review_pairing(link: ReadingSource, kinematics: CArmKinematics, setup: PatientSetup,
                    when: datetime, reading: EncoderReading | None, primary: float | None,
                    secondary: float | None, taken: set[int], tolerance_deg: float,
                    max_offset_s: float) -> ClockCheck | None:

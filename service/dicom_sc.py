@@ -17,6 +17,7 @@ import cv2
 import highdicom as hd
 import numpy as np
 from pydicom.dataset import Dataset
+from pydicom.valuerep import DA, TM
 
 from slamtka.service.headers import image_laterality, stamp_dates
 
@@ -49,7 +50,7 @@ def _dots(rgb: np.ndarray, points: np.ndarray, colour: tuple[int, int, int], rad
     h, w = rgb.shape[:2]
     pix = np.round(np.asarray(points, float).reshape(-1, 2)).astype(np.int64)
     ok = (pix[:, 0] >= 0) & (pix[:, 0] < w) & (pix[:, 1] >= 0) & (pix[:, 1] < h)
-    mask = np.zeros((h, w), np.uint8)
+    mask: np.ndarray = np.zeros((h, w), np.uint8)
     mask[pix[ok, 1], pix[ok, 0]] = 255
     if radius > 0:
         mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE,
@@ -145,7 +146,7 @@ def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_
         manufacturer=manufacturer, laterality=image_laterality(source.get("Laterality")),
         series_description=description)
     # highdicom takes single letters; DICOM allows the oblique combinations too.
-    sc.PatientOrientation = list(orientation) if orientation else ""
+    sc.PatientOrientation = list(orientation) if orientation else []
     sc.BurnedInAnnotation = "YES"
     sc.ImageType = ["DERIVED", "SECONDARY"]
     sc.DerivationDescription = "X-ray with measured contours, pin axes and resection plane"
@@ -156,6 +157,6 @@ def build_sc(source: Dataset, rgb: np.ndarray, *, series_uid: str, sop_instance_
     if institution:
         sc.InstitutionName = institution
     stamp_dates(sc, content_datetime)
-    sc.DateOfSecondaryCapture = content_datetime.strftime("%Y%m%d")
-    sc.TimeOfSecondaryCapture = content_datetime.strftime("%H%M%S.%f")
+    sc.DateOfSecondaryCapture = DA(content_datetime.strftime("%Y%m%d"))
+    sc.TimeOfSecondaryCapture = TM(content_datetime.strftime("%H%M%S.%f"))
     return sc

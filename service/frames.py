@@ -62,7 +62,7 @@ SOP_CLASSES: dict[str, tuple[str, ...]] = {
     DX_PROCESSING_STORAGE: ("DX",),
     SECONDARY_CAPTURE_STORAGE: ("XA", "RF", "DX", "OT"),
 }
-_ENCODABLE = {XA_IMAGE_STORAGE: "XA", RF_IMAGE_STORAGE: "RF"}
+_ENCODABLE: dict[str, str] = {XA_IMAGE_STORAGE: "XA", RF_IMAGE_STORAGE: "RF"}
 # Where Enhanced XA keeps, per frame, what single-frame XA has at the top level:
 # (functional group sequence, attribute in it, single-frame attribute it stands for).
 _FUNCTIONAL_GROUP_ATTRIBUTES = (
@@ -208,8 +208,8 @@ def encode_frame(frame: Frame, *, manufacturer: str = "slamtka", station_name: s
     date, time = when.strftime("%Y%m%d"), when.strftime("%H%M%S.%f")
 
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = frame.sop_class_uid
-    meta.MediaStorageSOPInstanceUID = frame.sop_instance_uid
+    meta.MediaStorageSOPClassUID = UID(frame.sop_class_uid)
+    meta.MediaStorageSOPInstanceUID = UID(frame.sop_instance_uid)
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     meta.ImplementationClassUID = PYDICOM_IMPLEMENTATION_UID
     ds = Dataset()
@@ -376,7 +376,7 @@ def _pixel_spacing(ds: Dataset) -> tuple[float, float]:
                 raise FrameError(f"{keyword} {value!r} is not numeric") from None
             if len(spacing) != 2 or not all(0.0 < s < 10.0 for s in spacing):
                 raise FrameError(f"{keyword} {list(spacing)} mm is not a plausible pixel spacing")
-            return spacing  # type: ignore[return-value]
+            return spacing
     raise FrameError("ImagerPixelSpacing is missing (and no PixelSpacing either)")
 
 

@@ -21,14 +21,15 @@ from datetime import datetime
 from pathlib import Path
 
 import pydicom
+from pydicom.dataset import Dataset
 from pydicom.errors import InvalidDicomError
 
 from slamtka.drivers.kinematics import CArmKinematics, JointReading
 from slamtka.drivers.reading_history import EncoderReading
 from slamtka.service.cases import CaseAssembler
 from slamtka.service.config import CarmConfig, PipelineConfig
-from slamtka.service.frames import FrameError, decode_frame
-from slamtka.service.plans import PlanStore
+from slamtka.service.frames import Frame, FrameError, decode_frame
+from slamtka.service.plans import PlanFinder, PlanStore
 from slamtka.service.poses import ViewGeometry
 from slamtka.service.spool import Spool
 from slamtka.solver.imaging.calibration_file import CalibrationError, load_calibration
@@ -69,6 +70,11 @@ class _RecordedReadings:
         best = min(self.readings, key=lambda r: abs((r.time_utc - t_utc).total_seconds()))
         return best if abs((best.time_utc - t_utc).total_seconds()) <= _READING_MATCH_S else None
 
+    def readings_between(self, t0_utc: datetime, t1_utc: datetime) -> list[EncoderReading]:
+        """The readings between two instants, oldest first (as the live link answers)."""
+        return sorted((r for r in self.readings if t0_utc <= r.time_utc <= t1_utc),
+                      key=lambda r: r.time_utc)
+
 
 class _OnePlan:
     """The plan store of a run: the one plan given, for its patient only."""
@@ -83,8 +89,9 @@ class _OnePlan:
         return self.plan
 
 
-def _read_frames(paths: list[Path]) -> list[pydicom.Dataset]:
-    datasets, first = [], None
+def _read_frames(paths: list[Path]) -> list[tuple[Path, Dataset, Frame]]:
+    datasets: list[tuple[Path, Dataset, Frame]] = []
+    first = None
     for path in paths:
         try:
             ds = pydicom.dcmread(path)
@@ -103,10 +110,11 @@ def _read_frames(paths: list[Path]) -> list[pydicom.Dataset]:
     return datasets
 
 
-def _plan_store(path: Path, patient_id: str, laterality: str | None):
+def _plan_store(path: Path, patient_id: str, laterality: str | None) -> PlanFinder:
     if not path.exists():
         raise MeasureError(f"{path}: no such plan")
     try:
+        store: PlanFinder
         if (path / "plan.json").is_file():
             store = _OnePlan(Plan.load(path), path)
         else:

@@ -44,7 +44,7 @@ from slamtka.service.display import advice, change_line
 from slamtka.service.frames import Frame, encode_frame
 from slamtka.service.headers import sanitised_header
 from slamtka.service.pinsets import NO_CONTOURS, pin_disagreement_px
-from slamtka.service.plans import PlanStore
+from slamtka.service.plans import PlanFinder
 from slamtka.service.poses import InitialViews, ViewGeometry, planned_pins
 from slamtka.service.recording import CaseRecorder
 from slamtka.service.refusals import Refusal, RefusalCode
@@ -54,6 +54,7 @@ from slamtka.service.spool import Spool
 from slamtka.solver import kernels
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.calibration_file import Calibration
 from slamtka.solver.imaging.contours import (
     ContourError,
     ExtractedContours,
@@ -71,6 +72,7 @@ log = logging.getLogger("slamtka.pipeline")
 _T = TypeVar("_T")
 PLANE_PATCH_HALF_MM = 30.0
 _PREPARED_VIEWS = 64  # extracted contours kept for views waiting for their run
+_NO_CALIBRATION = "the frame does not match the C-arm calibration"
 _SR_CLASS = "1.2.840.10008.5.1.4.1.1.88.34"  # Comprehensive 3D SR Storage
 _SC_CLASS = "1.2.840.10008.5.1.4.1.1.7"  # Secondary Capture Image Storage
 _RESULT_UID_NAMESPACE = uuid.UUID("5f0c3a52-7b1e-4c55-9d0e-51a3c0a7e2b4")  # slamtka results
@@ -188,14 +190,14 @@ def plane_polygon(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
 class Pipeline:
     """Runs cases; everything it needs is built once at service start."""
 
-    def __init__(self, spool: Spool, plans: PlanStore, calibrations, geometry: ViewGeometry,
+    def __init__(self, spool: Spool, plans: PlanFinder, calibrations, geometry: ViewGeometry,
                  output_root: Path, *, manual_contours_dir: Path | None = None,
                  institution: str = ""):
         """``calibrations``: a :class:`CalibrationSet` (per C-arm), or one calibration for all."""
         self.spool, self.plans, self.geometry = spool, plans, geometry
         self.calibrations = (calibrations if isinstance(calibrations, CalibrationSet)
                              else CalibrationSet([], calibrations))
-        self.calibration = None  # of the run (or arriving view) being worked on
+        self.calibration: Calibration | None = None  # of the run (or arriving view) being worked on
         self.output_root = Path(output_root)
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
         self._extracted: OrderedDict[str, tuple[ExtractedContours | None, str]] = OrderedDict()
@@ -223,10 +225,18 @@ class Pipeline:
     def already_done(self, case: Case, views: list[View], run_id: str | None = None) -> bool:
         return (self.run_folder(case, views, run_id) / "result.json").is_file()
 
+    def _calibrated(self) -> Calibration:
+        """The calibration of the run (or arriving view) being worked on: a run reaches the
+        stages that need it only with one chosen (without, every view is left out)."""
+        if self.calibration is None:
+            raise RuntimeError("no C-arm calibration has been chosen for these views")
+        return self.calibration
+
     # -- stages ---------------------------------------------------------------------------
-    def _manual_contours(self) -> dict[str, ExtractedContours]:
-        """Hand-drawn contours (raw pixels) by SOP Instance UID (the documents' view_id)."""
-        found: dict[str, ExtractedContours] = {}
+    def _manual_contours(self) -> dict[str, tuple[str, ExtractedContours]]:
+        """Hand-drawn contours by SOP Instance UID (the documents' view_id), with their
+        coordinates ("raw" or "undistorted")."""
+        found: dict[str, tuple[str, ExtractedContours]] = {}
         if self.manual_contours_dir is None or not self.manual_contours_dir.is_dir():
             return found
         for path in sorted(self.manual_contours_dir.glob("*.json")):
@@ -236,10 +246,27 @@ class Pipeline:
                 log.error("ignoring manual contours: %s", exc)
                 continue
             for uid, contours in views.items():
-                found[uid] = contours if coordinates != "undistorted" else ExtractedContours(
-                    **{label: self.calibration.distort_points(points)
-                       for label, points in contours.as_dict().items()})
+                found[uid] = (coordinates, contours)
         return found
+
+    def _raw_pixels(self, drawn: tuple[str, ExtractedContours]) -> ExtractedContours:
+        """Hand-drawn contours in raw pixels: undistorted ones are distorted with the current
+        calibration (the run's, or the arriving view's)."""
+        coordinates, contours = drawn
+        if coordinates != "undistorted":
+            return contours
+        distort = self._calibrated().distort_points
+        return ExtractedContours(distort(contours.bone), distort(contours.pin1), distort(contours.pin2))
+
+    def _fit_calibration(self, view: View) -> Frame | None:
+        """Make the calibration that fits the view's frame the current one; the frame, or
+        None when no calibration fits it."""
+        decoded = self.spool.decoded.get(view.entry)
+        calibration, _ = self.calibrations.select(decoded.header, decoded.frame)
+        if calibration is None or calibration.check_frame(decoded.frame) is not None:
+            return None
+        self.calibration = calibration
+        return decoded.frame
 
     def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
                  pins: tuple[Pose, Pose]) -> tuple[ExtractedContours | None, str]:
@@ -247,9 +274,10 @@ class Pipeline:
         uid = view.sop_instance_uid
         if uid not in self._extracted:
             try:
-                centres, width = plan.pin_shadows(self.calibration.camera, T_cam_tibia, pins)
+                calibration = self._calibrated()
+                centres, width = plan.pin_shadows(calibration.camera, T_cam_tibia, pins)
                 found = extract_contours(frame.pixels,
-                                         expected_pins=self.calibration.distort_points(centres),
+                                         expected_pins=calibration.distort_points(centres),
                                          expected_pin_width_px=width)
                 self._extracted[uid] = (found, "extracted")
             except ContourError as exc:
@@ -268,27 +296,28 @@ class Pipeline:
         except ValueError:
             return
         T = self.geometry.initial_views(plan, [view.pairing], [view.positioner]).T_cam_tibia[0]
-        decoded = self.spool.decoded.get(view.entry)
-        frame = decoded.frame
-        calibration, _ = self.calibrations.select(decoded.header, frame)
-        if calibration is not None and calibration.check_frame(frame) is None:
-            self.calibration = calibration
+        frame = self._fit_calibration(view)
+        if frame is not None:
             self._extract(plan, view, frame, T, self._planned_pins(plan))
 
     def view_contours(self, case: Case, view: View) -> tuple[dict[str, np.ndarray] | None, str]:
         """A view's contours as a run would use them (undistorted pixels) and their source,
         or None and why ("no plan" when the patient has none: nothing can be extracted)."""
-        manual = self._manual_contours().get(view.sop_instance_uid)
-        if manual is not None:
-            raw, source = manual, "manual"
+        drawn = self._manual_contours().get(view.sop_instance_uid)
+        raw: ExtractedContours | None
+        if drawn is not None:
+            # Undistorted with this view's calibration, not whichever was current (none yet
+            # after a start).
+            if self._fit_calibration(view) is None:
+                return None, _NO_CALIBRATION
+            raw, source = self._raw_pixels(drawn), "manual"
         else:
             try:
                 self.plans.find(case.patient_id, case.laterality)
             except ValueError:
                 return None, "no plan"
             self.prepare(case, view)
-            raw, source = self._extracted.get(view.sop_instance_uid, (
-                None, "the frame does not match the C-arm calibration"))
+            raw, source = self._extracted.get(view.sop_instance_uid, (None, _NO_CALIBRATION))
         if raw is None:
             return None, source
         missing = [label for label, points in (("pin1", raw.pin1), ("pin2", raw.pin2))
@@ -297,7 +326,8 @@ class Pipeline:
             why = raw.diagnostics.get("missing", {})
             return None, f"{NO_CONTOURS} (fewer than two pins: " + "; ".join(
                 f"{label} {why.get(label, 'not found')}" for label in missing) + ")"
-        return {label: self.calibration.undistort_points(points)
+        calibration = self._calibrated()
+        return {label: calibration.undistort_points(points)
                 for label, points in raw.as_dict().items()}, source
 
     def _planned_pins(self, plan: Plan) -> tuple[Pose, Pose]:
@@ -375,14 +405,17 @@ class Pipeline:
         selected = []
         for item in run.items:
             calibration, problem = self.calibrations.select(item.header, item.frame)
-            selected.append((calibration, problem or calibration.check_frame(item.frame)))
-        self.calibration = choose_for_run(selected)
-        if self.calibration is not None:
-            run.recorder.calibration(self.calibration.document())
+            if calibration is not None and problem is None:
+                problem = calibration.check_frame(item.frame)
+            selected.append((calibration, problem))
+        chosen = self.calibration = choose_for_run(selected)
+        if chosen is not None:
+            run.recorder.calibration(chosen.document())
         for item, (calibration, problem) in zip(run.items, selected):
-            if problem is None and calibration is not self.calibration:
+            if (problem is None and calibration is not None and chosen is not None
+                    and calibration is not chosen):
                 problem = (f"needs calibration {calibration.calibration_id}, the run uses "
-                           f"{self.calibration.calibration_id} (views from two C-arms or fields)")
+                           f"{chosen.calibration_id} (views from two C-arms or fields)")
             if problem:
                 item.left_out = problem
                 run.reasons.append(f"{item.view_id}: {problem}")
@@ -406,7 +439,7 @@ class Pipeline:
         run.start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
                                                 [i.view.positioner for i in usable])
         run.recorder.initial([i.view_id for i in usable], run.start.T_cam_tibia,
-                             list(self._planned_pins(plan)), [self.calibration.camera] * len(usable))
+                             list(self._planned_pins(plan)), [self._calibrated().camera] * len(usable))
 
     def _contours(self, run: _Run) -> None:
         """Each usable view's contours (drawn by hand, or extracted at its initial pose) and
@@ -418,7 +451,7 @@ class Pipeline:
         for item, T in zip(usable, start.T_cam_tibia):
             uid = item.view.sop_instance_uid
             if uid in manual:
-                item.contours, item.contour_source = manual[uid], "manual"
+                item.contours, item.contour_source = self._raw_pixels(manual[uid]), "manual"
             else:
                 item.contours, item.contour_source = self._extract(plan, item.view,
                                                                    item.frame, T, pins)
@@ -429,7 +462,7 @@ class Pipeline:
             else:
                 run.recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
         kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
-        cal = self.calibration
+        cal = self._calibrated()
         run.observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,
                                                    cal.distort_points)
                             for i, _ in kept if i.contours is not None]
@@ -497,7 +530,7 @@ class Pipeline:
         """Exactly what the solver was given (float64 JSON), for ``slamtka replay --resolve``."""
         from slamtka.solver.sdf import mesh_digest
 
-        return {"camera": self.calibration.camera.to_json(),
+        return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
                            "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
@@ -542,17 +575,8 @@ class Pipeline:
                      uids: dict, when: datetime, min_separation_deg: float
                      ) -> list[tuple[Dataset, str, str, str]]:
         """The run's SR and SCs, built in memory: (dataset, file name, kind, SOP class)."""
-        measured = None
         posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
-        if result.measured:
-            pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
-            axis = plan.landmarks.T_tibia_anat().R[:, 2]
-            angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
-                      for T in outcome.T_tibia_pin]
-            measured = SrMeasurement(result.angles, result.deviation, SrGeometry(
-                tibia_frame_of_reference_uid(result.bone_mesh_sha256),
-                plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
-                plan.side))
+        measured = self._sr_measurement(result, plan, outcome)
         notes = self._notes(result, min_separation_deg)
         sr = build_sr([i.header for i in items], measured, side=result.side,
                       version=result.software_version, series_uid=uids["sr-series"],
@@ -567,8 +591,8 @@ class Pipeline:
                                 within_tolerance=within)
             T = posed.get(item.view_id)
             orientation = None
-            if T is not None and plan is not None:
-                if measured is not None:
+            if T is not None and plan is not None and outcome is not None:
+                if measured is not None and outcome.plane is not None:
                     overlay.plane_px = self._project(T, plane_polygon(outcome.plane.point,
                                                                       outcome.plane.normal))
                 overlay.pin_axes_px = [self._project(T, pin_axis_points(P, plan.pin_length())[[0, -1]])
@@ -582,6 +606,23 @@ class Pipeline:
                           content_datetime=when)
             built.append((sc, f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
         return built
+
+    @staticmethod
+    def _sr_measurement(result: MeasurementResult, plan: Plan | None,
+                        outcome: SolveOutcome | None) -> SrMeasurement | None:
+        """The SR's measurement of a measured run: angles, plane and pins (else None)."""
+        if (not result.measured or plan is None or outcome is None or outcome.plane is None
+                or result.angles is None or result.deviation is None
+                or result.bone_mesh_sha256 is None):
+            return None
+        pins_axes = [pin_axis_points(T, plan.pin_length())[[0, -1]] for T in outcome.T_tibia_pin]
+        axis = plan.landmarks.T_tibia_anat().R[:, 2]
+        angles = [float(np.degrees(np.arccos(abs(np.dot(T.R[:, 2], axis)))))
+                  for T in outcome.T_tibia_pin]
+        return SrMeasurement(result.angles, result.deviation, SrGeometry(
+            tibia_frame_of_reference_uid(result.bone_mesh_sha256),
+            plane_polygon(outcome.plane.point, outcome.plane.normal), pins_axes, angles,
+            plan.side))
 
     def _pin_misfit(self, plan: Plan, outcome: SolveOutcome,
                     observations: list[ViewObservation]) -> float:
@@ -613,8 +654,9 @@ class Pipeline:
         return notes
 
     def _project(self, T_cam_tibia: Pose, points_tibia: np.ndarray) -> np.ndarray:
-        ideal = self.calibration.camera.project(T_cam_tibia.apply(points_tibia))
-        return self.calibration.distort_points(ideal)
+        calibration = self._calibrated()
+        ideal = calibration.camera.project(T_cam_tibia.apply(points_tibia))
+        return calibration.distort_points(ideal)
 
     @staticmethod
     def _summary_lines(result: MeasurementResult, min_separation_deg: float) -> list[str]:

@@ -32,6 +32,7 @@ import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import trimesh
@@ -42,7 +43,7 @@ from slamtka.solver.meshes import load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target, check_layout
 
-__all__ = ["PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
+__all__ = ["PlanFinder", "PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
            "LATERALITY_TO_SIDE"]
 
 log = logging.getLogger("slamtka.plans")
@@ -154,6 +155,13 @@ def estimate_landmarks(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None,
 
 def _folder_name(patient_id: str, side: str) -> str:
     return f"plan-{side}-{hashlib.sha256(patient_id.encode()).hexdigest()[:16]}"
+
+
+class PlanFinder(Protocol):
+    """What a run needs of its plans: a :class:`PlanStore`, or ``slamtka measure``'s one plan."""
+
+    def find(self, patient_id: str, laterality: str | None) -> Plan:
+        ...
 
 
 class PlanStore:
@@ -324,11 +332,13 @@ def cmd_plan_show(args: argparse.Namespace) -> int:
     store = _store(args)
     side = {"left": "L", "right": "R", None: None}[args.side]
     plan = store.find(args.patient_id, side)
-    provenance_path = plan.folder / "provenance.json"
+    folder = plan.folder
+    assert folder is not None, "a stored plan is loaded from its folder"
+    provenance_path = folder / "provenance.json"
     prov = json.loads(provenance_path.read_text()) if provenance_path.is_file() else {}
     lm = plan.landmarks
     lines = [
-        f"patient {plan.patient_id}, {plan.side} side   ({plan.folder})",
+        f"patient {plan.patient_id}, {plan.side} side   ({folder})",
         f"  tibia: {len(plan.tibia.faces)} triangles, extent "
         f"{np.round(plan.tibia.extents, 1).tolist()} mm"
         + ("" if plan.fibula is None else f"; fibula: {len(plan.fibula.faces)} triangles")
@@ -341,7 +351,7 @@ def cmd_plan_show(args: argparse.Namespace) -> int:
         f"  pin: {'parametric ' + json.dumps(vars(plan.pin_spec)) if plan.pin_spec else 'custom mesh'}"
         f", length {plan.pin_length():.1f} mm",
         f"  imported {prov.get('imported', 'unknown')}; cache: "
-        f"{sum(1 for _ in (plan.folder / 'cache').glob('*'))} file(s)",
+        f"{sum(1 for _ in (folder / 'cache').glob('*'))} file(s)",
     ]
     print("\n".join(lines))
     return 0

@@ -18,11 +18,11 @@ from the anterior cortex: a nominal block placement the joint solver refines.
 
 from __future__ import annotations
 
+from collections.abc import Set
 from dataclasses import dataclass
 
 import numpy as np
 
-from slamtka.drivers.encoder_link import EncoderLink
 from slamtka.drivers.kinematics import (
     AXIS_UNITS,
     CArmKinematics,
@@ -31,7 +31,7 @@ from slamtka.drivers.kinematics import (
     check_dicom_angles,
     initial_view_poses,
 )
-from slamtka.service.clock import review_pairing
+from slamtka.service.clock import ReadingSource, review_pairing
 from slamtka.service.frames import FrameHeader
 from slamtka.solver.anatomy import Landmarks, plane_normal_from_angles
 from slamtka.solver.block import block_axes, bone_entry_mm, pin_pose
@@ -80,6 +80,13 @@ class ViewPairing:
     def to_json(self) -> dict:
         return dict(vars(self))
 
+    def joints(self) -> JointReading:
+        """The joint values of the paired encoder reading (ValueError when there is none)."""
+        if self.encoder_reading is None:
+            raise ValueError(f"the view is not paired with an encoder reading ({self.initialisation})")
+        joints = self.encoder_reading["joints"]
+        return JointReading.from_axes({axis: joints[axis] for axis in AXIS_UNITS if axis in joints})
+
     @staticmethod
     def from_json(d: dict) -> ViewPairing:
         return ViewPairing(d.get("initialisation"), d.get("encoder_reading"), d.get("angle_check"),
@@ -94,15 +101,10 @@ class InitialViews:
     odometry_sigma: tuple[float, float] | None  # (rad, mm) when every view has encoders
 
 
-def _joints(reading: dict) -> JointReading:
-    joints = reading["joints"]
-    return JointReading.from_axes({axis: joints[axis] for axis in AXIS_UNITS if axis in joints})
-
-
 class ViewGeometry:
     """The C-arm side of the service: encoder pairing, beam directions, initial view poses."""
 
-    def __init__(self, kinematics: CArmKinematics, setup: dict, link: EncoderLink | None,
+    def __init__(self, kinematics: CArmKinematics, setup: dict, link: ReadingSource | None,
                  max_reading_age_s: float, angle_check_deg: float, max_clock_offset_s: float = 0.0):
         self.kinematics, self.setup_config, self.link = kinematics, dict(setup), link
         self.max_reading_age_s, self.angle_check_deg = max_reading_age_s, angle_check_deg
@@ -113,7 +115,7 @@ class ViewGeometry:
     def setup(self, landmarks: Landmarks) -> PatientSetup:
         return PatientSetup.from_config(landmarks, self.setup_config)
 
-    def pair(self, frame: FrameHeader, taken: set[int] = frozenset()) -> ViewPairing:
+    def pair(self, frame: FrameHeader, taken: Set[int] = frozenset()) -> ViewPairing:
         """The encoder reading at the frame's acquisition time, else its positioner angles.
 
         ``taken``: sequence numbers of the readings other views of the case were paired
@@ -128,8 +130,9 @@ class ViewGeometry:
                                     self.max_clock_offset_s)
             if review is not None:
                 if review.reading is not None:
-                    return ViewPairing("encoders", review.reading.to_json(),
-                                       review.check.to_json(), clock=review.note)
+                    agreement = None if review.check is None else review.check.to_json()
+                    return ViewPairing("encoders", review.reading.to_json(), agreement,
+                                       clock=review.note)
                 if review.note["status"] == "header_angles":
                     return ViewPairing("dicom_positioner", clock=review.note)
                 return ViewPairing(None, problem=review.note["message"], clock=review.note)
@@ -150,8 +153,10 @@ class ViewGeometry:
                   secondary_deg: float | None) -> np.ndarray:
         """Beam direction (source to detector) in the anatomical frame of the nominal set-up."""
         if pairing.initialisation == "encoders":
-            R_carm_cam = self.kinematics.T_carm_cam(_joints(pairing.encoder_reading)).R
+            R_carm_cam = self.kinematics.T_carm_cam(pairing.joints()).R
             return self._nominal_setup.R_carm_anat().T @ R_carm_cam[:, 2]
+        if primary_deg is None or secondary_deg is None:
+            raise ValueError(f"view paired by {pairing.initialisation} has no positioner angles")
         return beam_direction_anat(primary_deg, secondary_deg)
 
     def initial_views(self, plan: Plan, pairings: list[ViewPairing],
@@ -160,10 +165,10 @@ class ViewGeometry:
         setup = self.setup(plan.landmarks)
         T_anat_tibia = plan.landmarks.T_tibia_anat().inverse()
         encoder_views = [k for k, p in enumerate(pairings) if p.initialisation == "encoders"]
-        poses: list[Pose | None] = [None] * len(pairings)
+        poses: dict[int, Pose] = {}
         odometry = None
         if encoder_views:
-            joints = [_joints(pairings[k].encoder_reading) for k in encoder_views]
+            joints = [pairings[k].joints() for k in encoder_views]
             from_encoders, relatives = initial_view_poses(self.kinematics, joints, setup)
             for k, T in zip(encoder_views, from_encoders):
                 poses[k] = T
@@ -178,7 +183,7 @@ class ViewGeometry:
                 poses[k] = T_anat_cam.inverse() @ T_anat_tibia
             elif pairing.initialisation != "encoders":
                 raise ValueError(f"view {k} has no usable geometry: {pairing.problem}")
-        return InitialViews(poses, odometry)
+        return InitialViews([poses[k] for k in range(len(pairings))], odometry)
 
 
 def planned_pins(plan: Plan) -> tuple[Pose, Pose]:

@@ -95,7 +95,7 @@ class CaseRecorder:
         self.rec.log(f"views/{view_id}/positioner",
                      rr.AnyValues(**values, sop_instance_uid=frame.sop_instance_uid))
 
-    def encoder(self, view_id: str, source: str, reading: dict | None) -> None:
+    def encoder(self, view_id: str, source: str | None, reading: dict | None) -> None:
         self.rec.log(f"views/{view_id}/encoder",
                      rr.TextDocument(json.dumps({"initialisation": source, "reading": reading}),
                                      media_type=_JSON_MEDIA))

@@ -44,20 +44,24 @@ from pydicom.uid import (
     RLELossless,
 )
 from pynetdicom import AE, evt
-from pynetdicom.sop_class import (
-    DigitalXRayImageStorageForPresentation,
-    DigitalXRayImageStorageForProcessing,
-    EnhancedXAImageStorage,
-    SecondaryCaptureImageStorage,
-    Verification,
-    XRayAngiographicImageStorage,
-    XRayRadiofluoroscopicImageStorage,
-)
+from pynetdicom.events import EventHandlerType
+from pynetdicom.sop_class import Verification  # type: ignore[attr-defined]  # made at import
+from pynetdicom.transport import ThreadedAssociationServer
 
 from slamtka.service.audit import AuditLog
 from slamtka.service.config import DicomConfig
 from slamtka.service.dataset_guard import DatasetError, check_dataset_bytes
-from slamtka.service.frames import Frame, FrameError, decode_frame
+from slamtka.service.frames import (
+    DX_PRESENTATION_STORAGE,
+    DX_PROCESSING_STORAGE,
+    ENHANCED_XA_IMAGE_STORAGE,
+    RF_IMAGE_STORAGE,
+    SECONDARY_CAPTURE_STORAGE,
+    XA_IMAGE_STORAGE,
+    Frame,
+    FrameError,
+    decode_frame,
+)
 from slamtka.service.spool import Spool, SpoolEntry
 from slamtka.service.tls import server_ssl_context
 from slamtka.service.wire import GuardedServer, WireLimits
@@ -66,9 +70,8 @@ __all__ = ["DicomReceiver", "STORAGE_SOP_CLASSES", "TRANSFER_SYNTAXES", "check_i
 
 log = logging.getLogger("slamtka.scp")
 
-STORAGE_SOP_CLASSES = (XRayAngiographicImageStorage, EnhancedXAImageStorage,
-                       XRayRadiofluoroscopicImageStorage, DigitalXRayImageStorageForPresentation,
-                       DigitalXRayImageStorageForProcessing, SecondaryCaptureImageStorage)
+STORAGE_SOP_CLASSES = (XA_IMAGE_STORAGE, ENHANCED_XA_IMAGE_STORAGE, RF_IMAGE_STORAGE,
+                       DX_PRESENTATION_STORAGE, DX_PROCESSING_STORAGE, SECONDARY_CAPTURE_STORAGE)
 UNCOMPRESSED = (ExplicitVRLittleEndian, ImplicitVRLittleEndian)
 # The lossless (and JPEG-LS near-lossless) syntaxes C-arms default to; each is offered only
 # if pydicom has a decoder for it installed (pylibjpeg and its plugins, pyjpegls).
@@ -138,7 +141,7 @@ class DicomReceiver:
         self.config, self.spool, self.audit, self.on_stored = config, spool, audit, on_stored
         self.space_problem = space_problem
         self._ssl = server_ssl_context(config.tls) if config.tls.enabled else None
-        self._server = None
+        self._server: ThreadedAssociationServer | None = None
         ae = AE(ae_title=config.ae_title)
         ae.require_called_aet = True
         ae.require_calling_aet = [*config.allowed_calling_ae_titles, config.health_ae_title]
@@ -155,15 +158,16 @@ class DicomReceiver:
         self._in_memory = threading.BoundedSemaphore(config.max_frames_in_memory)
 
     def start(self) -> None:
-        handlers = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
+        handlers: list[EventHandlerType] = [(evt.EVT_C_STORE, self._on_store), (evt.EVT_C_ECHO, self._on_echo),
                     (evt.EVT_REJECTED, self._on_rejected), (evt.EVT_ACCEPTED, self._on_accepted)]
         limits = WireLimits(self.config, self.audit.record)
         limits.space_problem = self.space_problem
-        self._server = self.ae.make_server((self.config.bind_address, self.config.port),
-                                           evt_handlers=handlers, ssl_context=self._ssl,
-                                           server_class=GuardedServer, limits=limits)
-        self.ae._servers.append(self._server)  # so that AE.shutdown() reaches it too
-        threading.Thread(target=self._server.serve_forever, name="slamtka-scp-accept",
+        server = self.ae.make_server((self.config.bind_address, self.config.port),
+                                     evt_handlers=handlers, ssl_context=self._ssl,
+                                     server_class=GuardedServer, limits=limits)
+        self._server = server
+        self.ae._servers.append(server)  # so that AE.shutdown() reaches it too
+        threading.Thread(target=server.serve_forever, name="slamtka-scp-accept",
                          daemon=True).start()
         log.info("DICOM SCP %s listening on %s:%d%s", self.config.ae_title,
                  self.config.bind_address, self.port, " (TLS)" if self._ssl else "")

@@ -32,6 +32,7 @@ from pathlib import Path
 import pydicom
 from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian
 from pynetdicom import AE
+from pynetdicom.association import Association
 
 from slamtka.service.atomic_files import remove_partial, write_json_atomic
 from slamtka.service.audit import AuditLog
@@ -166,7 +167,7 @@ class Sender:
         return self._jobs(self.failed_dir)
 
     # -- sending ----------------------------------------------------------------------------
-    def _association(self, dest: Destination, sop_classes: set[str]) -> tuple[object, str]:
+    def _association(self, dest: Destination, sop_classes: set[str]) -> tuple[Association, str]:
         """The association (maybe not established) and, if TLS failed, why."""
         ae = AE(ae_title=self.ae_title)
         for timeout in ("acse_timeout", "dimse_timeout", "network_timeout", "connection_timeout"):
@@ -175,6 +176,7 @@ class Sender:
             ae.add_requested_context(sop_class, [ExplicitVRLittleEndian, ImplicitVRLittleEndian])
         if not dest.tls:
             return ae.associate(dest.host, dest.port, ae_title=dest.ae_title), ""
+        assert dest.ca_certificates is not None, "the config requires CA certificates with TLS"
         # The certificate must name the host (and be the pinned one, if set).
         ctx = client_ssl_context(dest.ca_certificates, dest.certificate, dest.private_key,
                                  f"destination {dest.name}",

@@ -131,7 +131,7 @@ class StatusBoard:
 def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0) -> tuple[bool, str]:
     """C-ECHO to the service under the health-check AE title: (answered, message)."""
     from pynetdicom import AE  # the DICOM stack only when an echo is asked for (start-up time)
-    from pynetdicom.sop_class import Verification
+    from pynetdicom.sop_class import Verification  # type: ignore[attr-defined]  # made at import
 
     ae = AE(ae_title=config.dicom.health_ae_title)
     ae.add_requested_context(Verification)
@@ -140,14 +140,16 @@ def echo(config: ServiceConfig, host: str | None = None, timeout_s: float = 10.0
     tls = None
     if config.dicom.tls.enabled:
         t = config.dicom.tls
-        # Our own port, dialled by address: the chain is checked, the name cannot be.
+        assert t.ca_certificates is not None, "the config requires CA certificates with TLS"
+        # Our own port, dialled by address: the chain is checked, the name cannot be (no
+        # server name: ssl takes None, which pynetdicom's hint of tls_args leaves out).
         tls = (client_ssl_context(t.ca_certificates, t.certificate, t.private_key, "dicom.tls",
                                   check_hostname=False), None)
     address = host or ("127.0.0.1" if config.dicom.bind_address in ("0.0.0.0", "::")
                        else config.dicom.bind_address)
     try:
         assoc = ae.associate(address, config.dicom.port, ae_title=config.dicom.ae_title,
-                             tls_args=tls)
+                             tls_args=tls)  # type: ignore[arg-type]
     except Exception as exc:  # connection and TLS errors of every kind
         return False, f"cannot connect to {address}:{config.dicom.port}: {exc}"
     if not assoc.is_established:

@@ -13,12 +13,14 @@ from __future__ import annotations
 import hashlib
 import ssl
 from pathlib import Path
+from typing import TypeVar
 
 from slamtka.service.config import ConfigError, TlsConfig
 
 __all__ = ["server_ssl_context", "client_ssl_context", "certificate_sha256", "fingerprint",
            "ClientContext", "PinMismatch"]
 
+_Context = TypeVar("_Context", bound=ssl.SSLContext)
 _TLS_VERSIONS = {"1.2": ssl.TLSVersion.TLSv1_2, "1.3": ssl.TLSVersion.TLSv1_3}
 
 
@@ -43,6 +45,7 @@ class _ClientSocket(ssl.SSLSocket):
 
     def do_handshake(self, block: bool = False) -> None:
         context = self.context
+        assert isinstance(context, ClientContext), "only a ClientContext wraps this socket class"
         try:
             super().do_handshake(block)
             seen = fingerprint(self.getpeercert(binary_form=True) or b"")
@@ -65,8 +68,8 @@ class ClientContext(ssl.SSLContext):
     handshake_error = ""
 
 
-def _load(ctx: ssl.SSLContext, certificate: Path | None, private_key: Path | None,
-          ca_certificates: Path | None, where: str) -> ssl.SSLContext:
+def _load(ctx: _Context, certificate: Path | None, private_key: Path | None,
+          ca_certificates: Path | None, where: str) -> _Context:
     try:
         if certificate is not None:
             ctx.load_cert_chain(certificate, private_key)

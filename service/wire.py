@@ -85,7 +85,7 @@ def command_problem(command: bytes) -> str | None:
 class WireLimits:
     """The limits and identities the guard enforces (from :class:`~service.config.DicomConfig`)."""
 
-    def __init__(self, config, audit: Callable[..., None]):
+    def __init__(self, config, audit: Callable[..., object]):
         self.ae_title = config.ae_title
         self.storers = set(config.allowed_calling_ae_titles)
         self.health = config.health_ae_title
@@ -156,7 +156,8 @@ class GuardedSocket(AssociationSocket):
 
     def _violation(self, reason: str, reply: bytes = _A_ABORT) -> _Violation:
         try:
-            self.socket.sendall(reply)
+            if self.socket is not None:  # None once pynetdicom has closed the connection
+                self.socket.sendall(reply)
         except OSError:
             pass
         self.release()  # this association is over: its slot is free for the next one now
@@ -177,7 +178,7 @@ class GuardedSocket(AssociationSocket):
             self.release()            # its next association is not refused by a lingering one
         self._body_type = pdu_type
 
-    def _check_associate(self, body: bytes) -> None:
+    def _check_associate(self, body: bytes | bytearray) -> None:
         """Admit the association (before pynetdicom negotiates): binding, then a slot."""
         if len(body) < 36 or self._requested:
             raise self._violation("malformed or repeated A-ASSOCIATE-RQ")
@@ -203,7 +204,7 @@ class GuardedSocket(AssociationSocket):
             raise self._violation(ticket, _A_ASSOCIATE_RJ_LIMIT)
         self._association = ticket
 
-    def _check_pdata(self, body: bytes) -> None:
+    def _check_pdata(self, body: bytes | bytearray) -> None:
         accepted = {cx.context_id for cx in self._assoc.accepted_contexts}
         pos = 0
         while pos < len(body):
@@ -281,6 +282,7 @@ class GuardedServer(ThreadedAssociationServer):
 
     # -- socketserver hooks --------------------------------------------------------------
     def get_request(self) -> tuple[socket.socket, tuple]:
+        assert self.socket is not None, "socketserver opens its socket before serving"
         return self.socket.accept()  # no TLS here: the handshake runs in the connection's thread
 
     def verify_request(self, request, client_address) -> bool:

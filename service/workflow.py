@@ -134,10 +134,10 @@ class Workflow:
                  contours: dict | None) -> PinSet:
         """The set the view joins: the current one, or a new one (audited, with why)."""
         current = sets.current
-        why = None
         if current is None:
-            why = "first view"
-        elif sets.new_set_requested:
+            return sets.start("first view")
+        why = None
+        if sets.new_set_requested:
             why = f"operator ({sets.new_set_requested})"
         elif self.new_set_on_new_series and view.series_uid not in current.series:
             why = "new DICOM series"
@@ -150,9 +150,8 @@ class Workflow:
         if why is None:
             return current
         new = sets.start(why)
-        if current is not None:
-            self.audit.record("pin_set_started", case_id=case.case_id, pin_set=new.number,
-                              sop_instance_uid=view.sop_instance_uid, reason=why)
+        self.audit.record("pin_set_started", case_id=case.case_id, pin_set=new.number,
+                          sop_instance_uid=view.sop_instance_uid, reason=why)
         return new
 
     def _pins_moved(self, case: Case, view: View, current: PinSet,
@@ -165,11 +164,15 @@ class Workflow:
         result, views = reference
         plan = self.pipeline.plans.find(case.patient_id, case.laterality)
         solved = result.solved_view_poses()
-        candidates = [v for v in views if v.sop_instance_uid in solved]
+        beam = view.beam_anat
+        if beam is None:
+            raise ValueError(f"view {view.sop_instance_uid} has no beam direction")
+        candidates = [(v, v.beam_anat) for v in views
+                      if v.sop_instance_uid in solved and v.beam_anat is not None]
         if not candidates:
             return None
         # The reference view the C-arm moved least from: its relative motion is the surest.
-        ref = max(candidates, key=lambda v: float(np.dot(v.beam_anat, view.beam_anat)))
+        ref, _ = max(candidates, key=lambda c: float(np.dot(c[1], beam)))
         start = self.pipeline.geometry.initial_views(plan, [ref.pairing, view.pairing],
                                                      [ref.positioner, view.positioner])
         T_ref0, T_new0 = start.T_cam_tibia
@@ -232,6 +235,7 @@ class Workflow:
         sets = self.store.get(case.case_id)
         uids = [v.sop_instance_uid for v in views]
         pin_set = sets.set_of(uids[0]) or sets.current
+        assert pin_set is not None, "a run's views were placed in a pin set"
         base = run_id_of(uids)
         earlier = sum(r.get("base", r["run_id"]) == base for s in sets.sets for r in s.runs)
         run_id = run_id_of(uids + [f"rerun-{earlier}"]) if rerun and earlier else base
@@ -242,7 +246,7 @@ class Workflow:
             previous = None if last is None else {
                 "run_id": last["run_id"], "pin_set": last["pin_set"], "number": last["number"],
                 "ctr_deg": last["ctr_deg"], "str_deg": last["str_deg"], "verdict": last["verdict"]}
-            record = {"run_id": run_id, "base": base, "pin_set": pin_set.number,
+            record: dict = {"run_id": run_id, "base": base, "pin_set": pin_set.number,
                       "number": len(pin_set.runs) + 1, "previous": previous,
                       "triggered": datetime.now(UTC).isoformat()}
             pin_set.runs.append(record)

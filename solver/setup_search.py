@@ -109,7 +109,7 @@ class _ViewField:
 
     def _inside(self, pixels: np.ndarray) -> np.ndarray:
         """Mask of reduced-resolution pixels (N, 2) that lie inside the reduced image."""
-        return ((pixels >= 0) & (pixels < np.array(self.shape[::-1]))).all(axis=1)
+        return np.all((pixels >= 0) & (pixels < np.array(self.shape[::-1])), axis=1)
 
 
 def _rotations(half_range_deg: float, step_deg: float, centre: np.ndarray) -> list[np.ndarray]:
@@ -195,7 +195,7 @@ def search_setup(
                          for rotvec in _rotations(search.coarse_half_range_deg,
                                                   search.coarse_step_deg, np.zeros(3))),
                         key=lambda hypothesis: hypothesis[0][0])
-        best = (np.inf, np.zeros(3), knee_at)
+        best: tuple[float, np.ndarray, np.ndarray] = (np.inf, np.zeros(3), knee_at)
         for (score, shifts), rotvec in coarse[: search.rescored]:
             own = knee_at
             for _ in range(2):
@@ -207,12 +207,12 @@ def search_setup(
                 best = (score, rotvec, own)
         _, best_rotvec, knee_at = best
         for half in [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]:
-            best = (np.inf, best_rotvec, [])
+            fine: tuple[float, np.ndarray, list[np.ndarray]] = (np.inf, best_rotvec, [])
             for rotvec in _rotations(half, half, best_rotvec):
                 score, shifts = h.evaluate(rotvec, knee_at)
-                if score < best[0]:
-                    best = (score, rotvec, shifts)
-            score, best_rotvec, shifts = best
+                if score < fine[0]:
+                    fine = (score, rotvec, shifts)
+            score, best_rotvec, shifts = fine
             if not np.isfinite(score):
                 break
             knee_at = h.shifted(knee_at, shifts)

@@ -308,3 +308,32 @@ def test_install_refuses_an_unsafe_id_and_a_second_calibration_of_the_same_detec
     (made / "bad.json").write_text(json.dumps(doc))
     with pytest.raises((ValueError, CalibrationError)):
         store.install(made / "bad.json", "device_serial_number")
+
+
+def test_drawn_contours_of_a_view_use_its_calibration_from_the_first_view(tmp_path):
+    """Undistorted hand-drawn contours of the first view after a start: distorted with that
+    view's calibration (there was none current yet: this failed); a view of a C-arm
+    without calibration has none to use."""
+    spool = Spool(tmp_path / "spool")
+    geometry = ViewGeometry(CArmKinematics(), {}, None, 0.1, 3.0)
+    assembler = CaseAssembler(spool, geometry, 15.0, 6)
+    study = generate_uid()
+    for serial, angle in (("OR3", -30.0), ("OR7", 30.0)):
+        entry, _ = spool.store(encode_frame(small_frame(study_uid=study, primary_angle_deg=angle),
+                                            device_serial_number=serial))
+        case, _ = assembler.add(entry)
+    mine = _calibration(tmp_path, "or3", {"device_serial_number": "OR3"})
+    drawn_dir = tmp_path / "drawn"
+    drawn_dir.mkdir()
+    or3_view, or7_view = case.selection(6)
+    drawn = {"bone": [[10.0, 12.0], [20.0, 22.0]], "pin1": [[30.0, 31.0]], "pin2": [[40.0, 41.0]]}
+    (drawn_dir / "drawn.json").write_text(json.dumps({
+        "format": "slamtka-contours/1", "coordinates": "undistorted",
+        "views": [{"view_id": v.sop_instance_uid, **drawn} for v in (or3_view, or7_view)]}))
+    pipeline = Pipeline(spool, PlanStore(tmp_path / "plans"), CalibrationSet([mine], None), geometry,
+                        tmp_path / "out", manual_contours_dir=drawn_dir)
+    contours, source = pipeline.view_contours(case, or3_view)
+    assert source == "manual" and pipeline.calibration is mine
+    for label, points in drawn.items():
+        np.testing.assert_allclose(contours[label], points, atol=1e-6)
+    assert pipeline.view_contours(case, or7_view) == (None, "the frame does not match the C-arm calibration")

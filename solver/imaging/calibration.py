@@ -105,7 +105,7 @@ class _Run:
                           "created": datetime.now(UTC).isoformat(timespec="seconds"),
                           "status": "running", "refusal": None, "phantom": spec.to_json(),
                           "images": []}
-        self.entries = {}
+        self.entries: dict[str, dict] = {}
         for im in images:
             entry = {"image": im.name, "used": False, "reason": None, "balls_found": None,
                      "balls_used": 0, "stray_blobs": 0, "outlier_balls": [], "rms_px": None,
@@ -133,7 +133,7 @@ def _screen(images: list[CalibrationImage], run: _Run) -> list[CalibrationImage]
         if im.pixels.shape != shape:
             run.set_aside(im.name, f"different size {im.pixels.shape[1]}x{im.pixels.shape[0]} px "
                                    f"from the set's {shape[1]}x{shape[0]} px")
-        elif im.pixel_spacing_mm is not None and im.pixel_spacing_mm != spacing:
+        elif im.pixel_spacing_mm is not None and spacing is not None and im.pixel_spacing_mm != spacing:
             run.set_aside(im.name, f"different pixel spacing {list(im.pixel_spacing_mm)} mm from "
                                    f"the set's {list(spacing)} mm")
         elif digest in seen:
@@ -277,6 +277,7 @@ class _Estimator:
         """Plate coefficients from the frames' rays: each ball is the point nearest to all
         rays through it (in the plate frame), pulled weakly towards the grid so that a ball
         seen in one frame only stays on the plate (its z needs two tilts)."""
+        assert self.basis is not None, "plate offsets are estimated only with refine_plate"
         K, distortion = self._camera()
         n = len(self.nominal)
         A, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
