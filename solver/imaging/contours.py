@@ -562,17 +562,30 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
     return count + len(added), np.concatenate([good, np.asarray(added, bool)])
 
 
-def _below_pins(A: np.ndarray, config: ContourConfig) -> np.ndarray:
-    """What the frame would show without its pins: ``A`` opened (half size) by a disk wider
-    than two pins side by side. Narrow shadows (pins, a blade seen edge-on) go; a broad
-    one stays, so a pin crossing a retractor blade stands out over the blade as over
-    tissue, and the blade's own edges, steps rather than ridges, are no pin's."""
-    half = cv2.resize(A, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-    half = cv2.GaussianBlur(half, (0, 0), 1.0)
+def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """What the frame would show without its pins: ``A``'s 100-px median (the tissue and
+    bone around a pin) and, on and beside broad metal, ``A`` opened (half size) by a disk
+    wider than a pin where that is higher: the opening keeps what is broader than a pin,
+    so a pin crossing a face-on retractor blade stands out over the blade as over tissue,
+    and the blade itself is no pin's shadow. (The opening everywhere moved pins' edges: it
+    is the lower envelope of a sloping background, and a step where a pin leaves the bone
+    split two overlapping pins in the wrong places: shutters seed 19, 1.2 deg off.)"""
+    small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    lo, hi = np.percentile(small, [0.5, 99.5])
+    quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
+    median = cv2.medianBlur(quantised, 25).astype(np.float32) / 255 * (hi - lo) + lo
+    shape = A.shape[::-1]
+    median = cv2.resize(median, shape, interpolation=cv2.INTER_LINEAR)
+    if not broad.any():
+        return median
+    half = cv2.GaussianBlur(cv2.resize(A, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA),
+                            (0, 0), 1.0)
     size = int(config.pin_width_px[1] / 2) | 1
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-    opened = cv2.morphologyEx(half, cv2.MORPH_OPEN, disk)
-    return np.minimum(cv2.resize(opened, A.shape[::-1], interpolation=cv2.INTER_LINEAR), A)
+    opened = np.minimum(cv2.resize(cv2.morphologyEx(half, cv2.MORPH_OPEN, disk), shape,
+                                   interpolation=cv2.INTER_LINEAR), A)
+    beside = cv2.dilate(broad.astype(np.uint8), np.ones((2 * size + 1,) * 2, np.uint8)) > 0
+    return np.where(beside, np.maximum(median, opened), median)
 
 
 _SPLIT_TRIED = 3  # largest shadows tried, in turn, as the one holding both pins
@@ -607,11 +620,12 @@ def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
     return 2.0 * float(np.median(sides)) if len(sides) else 2.0 * bar.half_width
 
 
-def _pins(A: np.ndarray, valid: np.ndarray, config: ContourConfig, expected: np.ndarray | None,
-          expected_width_px: float | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
+def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourConfig,
+          expected: np.ndarray | None, expected_width_px: float | None
+          ) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
     widths = _PinWidths.of(config, expected_width_px)
-    background = _below_pins(A, config)
+    background = _below_pins(A, broad, config)
     excess = np.where(valid, A - background, 0.0).astype(np.float32)
     # Scatter adds to what passes steel and bone alike, so steel's excess over its
     # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
@@ -787,6 +801,7 @@ _MAX_SMOOTHING_PX = 4.0
 # 6-30 px leaves the rim's halo there (coverage of the true outline on 18 simulated
 # processed frames: 55% with none, 62% with 40 px; bone median within 3 px: 8 -> 10 frames).
 _PROCESSED_RIM_HALO_PX = 40.0
+_OPAQUE_TO_PINS = 2.5  # attenuation over the field's median: under 8% passes, no pin shows
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
@@ -896,7 +911,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
-    # A pin is sought over broad metal too (a blade is no pin but a pin may cross it).
+    # A pin is sought over broad metal that it shows through (a retractor blade: no pin,
+    # but a pin may cross it), not behind collimator lead, where its shadow would only
+    # grow into the noise.
+    field &= ~(broad & (cv2.GaussianBlur(A, (0, 0), 4.0) > fill + _OPAQUE_TO_PINS))
     A_field = np.where(field, A, fill).astype(np.float32)
     A = np.where(valid, A, fill).astype(np.float32)
     smoothing = _smoothing_for_noise(A, valid, config)
@@ -907,19 +925,22 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     air = valid & (coarse < np.percentile(coarse[::2, ::2][valid[::2, ::2]], 0.5) + config.air_margin)
     to_air = _distance_to(air)
 
-    (pin1, pin2), pins, pin_info = _pins(A_field, field, config, expected_pins, expected_pin_width_px)
+    (pin1, pin2), pins, pin_info = _pins(A_field, field, broad & field, config, expected_pins,
+                                         expected_pin_width_px)
     bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
     margin = config.fov_margin_px
     rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
-    pin_rim_ok = rim_ok.copy()
+    # A pin is found across broad metal, but its edges there are not placed: behind a
+    # collimator blade too few quanta pass to place one (shutters seed 19: a pin's edges
+    # 1 px off and an angle 1.1 deg off, where they had been left out).
     rim_ok &= _distance_to(broad) > margin
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
     bone = _keep(bone, bone_visible & (to_air > 3.0))
-    pin1, pin2 = _keep(pin1, pin_rim_ok), _keep(pin2, pin_rim_ok)
+    pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
     missing = {label: _why_missing(k, expected_pins, broad)
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
