@@ -564,12 +564,13 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
 
 def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.ndarray:
     """What the frame would show without its pins: ``A``'s 100-px median (the tissue and
-    bone around a pin) and, on and beside broad metal, ``A`` opened (half size) by a disk
-    wider than a pin where that is higher: the opening keeps what is broader than a pin,
-    so a pin crossing a face-on retractor blade stands out over the blade as over tissue,
-    and the blade itself is no pin's shadow. (The opening everywhere moved pins' edges: it
-    is the lower envelope of a sloping background, and a step where a pin leaves the bone
-    split two overlapping pins in the wrong places: shutters seed 19, 1.2 deg off.)"""
+    bone around a pin), and on and beside broad metal, ``A``
+    opened (half size) by a disk wider than a pin: the opening keeps what is broader than
+    a pin, so a pin crossing a face-on retractor blade stands out over the blade as over
+    tissue, and the blade itself is no pin's shadow (the median there is raised by the
+    blade). The opening everywhere moved pins' edges: it is the lower envelope of a
+    sloping background, and a step where a pin leaves the bone split two overlapping pins
+    in the wrong places (shutters seed 19, 1.2 deg off)."""
     small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
     lo, hi = np.percentile(small, [0.5, 99.5])
     quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
@@ -585,7 +586,7 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
     opened = np.minimum(cv2.resize(cv2.morphologyEx(half, cv2.MORPH_OPEN, disk), shape,
                                    interpolation=cv2.INTER_LINEAR), A)
     beside = cv2.dilate(broad.astype(np.uint8), np.ones((2 * size + 1,) * 2, np.uint8)) > 0
-    return np.where(beside, np.maximum(median, opened), median)
+    return np.where(beside, opened, median)
 
 
 _SPLIT_TRIED = 3  # largest shadows tried, in turn, as the one holding both pins
@@ -801,7 +802,6 @@ _MAX_SMOOTHING_PX = 4.0
 # 6-30 px leaves the rim's halo there (coverage of the true outline on 18 simulated
 # processed frames: 55% with none, 62% with 40 px; bone median within 3 px: 8 -> 10 frames).
 _PROCESSED_RIM_HALO_PX = 40.0
-_OPAQUE_TO_PINS = 2.5  # attenuation over the field's median: under 8% passes, no pin shows
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
@@ -911,10 +911,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= ~broad
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
-    # A pin is sought over broad metal that it shows through (a retractor blade: no pin,
-    # but a pin may cross it), not behind collimator lead, where its shadow would only
-    # grow into the noise.
-    field &= ~(broad & (cv2.GaussianBlur(A, (0, 0), 4.0) > fill + _OPAQUE_TO_PINS))
+    # A pin is sought over broad metal too (a blade is no pin but a pin may cross it).
     A_field = np.where(field, A, fill).astype(np.float32)
     A = np.where(valid, A, fill).astype(np.float32)
     smoothing = _smoothing_for_noise(A, valid, config)
