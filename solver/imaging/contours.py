@@ -7,12 +7,13 @@ Pipeline (all tuning in :class:`ContourConfig`):
    the polarity (attenuating objects dark or bright) follows from which side is brighter.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
-3. Pins: ``A`` minus what it shows without anything as narrow as a pin (an opening by a
-   disk wider than one), over the whole field, broad metal included: a pin crossing a
-   retractor blade shows over it as over tissue. Seeded above ``pin_threshold`` and grown
-   to half each shadow's peak; only bars of a pin's width and shape are kept (the plan's
-   pin projected at the initial pose says which width), and a shadow holding straight
-   bars of different directions (a pin across a blade seen edge-on) is cut into them.
+3. Pins: ``A`` minus a 100-px median background, and on and beside broad metal minus
+   what it shows without anything as narrow as a pin (an opening by a disk wider than
+   one): a pin crossing a retractor blade shows over it as over tissue. Seeded above
+   ``pin_threshold`` and grown to half each shadow's peak; only bars of a pin's width and
+   shape are kept (the plan's pin projected at the initial pose says which width), and a
+   shadow holding straight bars of different directions (a pin across a blade seen
+   edge-on) is cut into them.
    Seen nearly along the resection plane the two parallel pins often overlap, staggered
    along their common axis; steel saturates, so one shadow is split into two bars where
    its long sides step from one pin's edge to the other's (``pin_min_step_px``).
