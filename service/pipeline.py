@@ -133,26 +133,10 @@ class _Run:
     def usable(self) -> list[_ViewInput]:
         return [i for i in self.items if i.used]
 
-    # What a stage may rely on, given the stages before it ran (else the run was refused).
-    @property
-    def planned(self) -> Plan:
-        return _made(self.plan)
-
-    @property
-    def started_from(self) -> InitialViews:
-        return _made(self.start)
-
-    @property
-    def solved(self) -> SolveOutcome:
-        return _made(self.outcome)
-
-    @property
-    def built(self) -> MeasurementResult:
-        return _made(self.result)
-
 
 def _made(value: _T | None) -> _T:
-    """A member of the run context that an earlier stage has made."""
+    """A member of the run context that an earlier stage has made (a stage runs only after
+    those before it, unless the run was refused)."""
     if value is None:
         raise RuntimeError("a pipeline stage ran before the stage that makes its input")
     return value
@@ -378,7 +362,7 @@ class Pipeline:
             stage.run(self, run)
             run.timings[f"{stage.name}_s"] = time.perf_counter() - begun
         run.timings["total_s"] = time.perf_counter() - started
-        result = run.built.completed(run.timings, run.dicom_error)
+        result = _made(run.result).completed(run.timings, run.dicom_error)
         doc = result.to_document()
         recorder.result(doc)
         if result.angles is not None:
@@ -435,7 +419,7 @@ class Pipeline:
                 f"only {len(run.usable)} usable view(s); at least two are needed")
 
     def _initial_poses(self, run: _Run) -> None:
-        usable, plan = run.usable, run.planned
+        usable, plan = run.usable, _made(run.plan)
         run.start = self.geometry.initial_views(plan, [i.view.pairing for i in usable],
                                                 [i.view.positioner for i in usable])
         run.recorder.initial([i.view_id for i in usable], run.start.T_cam_tibia,
@@ -444,7 +428,7 @@ class Pipeline:
     def _contours(self, run: _Run) -> None:
         """Each usable view's contours (drawn by hand, or extracted at its initial pose) and
         the solver's views of them; fewer than two views with contours are refused."""
-        plan, start = run.planned, run.started_from
+        plan, start = _made(run.plan), _made(run.start)
         pins = self._planned_pins(plan)
         manual = self._manual_contours()
         usable = run.usable
@@ -474,16 +458,16 @@ class Pipeline:
                                      "least two are needed")
 
     def _solve(self, run: _Run) -> None:
-        run.outcome = solve_joint(run.planned, run.observations, _made(run.initial), _SOLVER_CONFIG,
-                                  callback=run.recorder.iteration)
+        run.outcome = solve_joint(_made(run.plan), run.observations, _made(run.initial),
+                                  _SOLVER_CONFIG, callback=run.recorder.iteration)
 
     def _plane_and_angles(self, run: _Run) -> None:
         """The solved poses, pins and plane into the recording (the solver measured them)."""
-        outcome = run.solved
+        outcome = _made(run.outcome)
         polygon = (None if outcome.plane is None
                    else plane_polygon(outcome.plane.point, outcome.plane.normal))
         run.recorder.final([o.view_id for o in run.observations], outcome.T_cam_tibia,
-                           outcome.T_tibia_pin, run.planned.pin_mesh, polygon, outcome.residual_rms)
+                           outcome.T_tibia_pin, _made(run.plan).pin_mesh, polygon, outcome.residual_rms)
 
     def _results(self, run: _Run) -> None:
         """The validated result, then the SR and SCs, every one on disk before any is sent."""
@@ -496,7 +480,7 @@ class Pipeline:
         measurement = run.measurement
         if measurement is not None and outcome is not None and outcome.status == "measured":
             measurement = {**measurement, "pin_misfit_px": self._pin_misfit(
-                run.planned, outcome, run.observations)}
+                _made(run.plan), outcome, run.observations)}
         run.result = build_result(
             case_id=case.case_id, run_id=run.run_id,
             case={"patient_id": case.patient_id, "study_instance_uid": case.study_uid,
@@ -694,6 +678,6 @@ _STAGES = (
     _Stage("initial_poses", Pipeline._initial_poses),
     _Stage("contours", Pipeline._contours),
     _Stage("solve", Pipeline._solve),
-    _Stage("plane_and_angles", Pipeline._plane_and_angles, describe=lambda run: run.solved.status),
+    _Stage("plane_and_angles", Pipeline._plane_and_angles, describe=lambda run: _made(run.outcome).status),
     _Stage("results", Pipeline._results, after_refusal=True),
 )

@@ -565,13 +565,13 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
 
 def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.ndarray:
     """What the frame would show without its pins: ``A``'s 100-px median (the tissue and
-    bone around a pin), and on and beside broad metal, ``A``
-    opened (half size) by a disk wider than a pin: the opening keeps what is broader than
-    a pin, so a pin crossing a face-on retractor blade stands out over the blade as over
-    tissue, and the blade itself is no pin's shadow (the median there is raised by the
-    blade). The opening everywhere moved pins' edges: it is the lower envelope of a
-    sloping background, and a step where a pin leaves the bone split two overlapping pins
-    in the wrong places (shutters seed 19, 1.2 deg off)."""
+    bone around a pin), and on and beside broad metal ``A`` opened (half size) by a disk
+    wider than a pin: the opening keeps what is broader than a pin, so a pin crossing a
+    face-on retractor blade stands out over the blade as over tissue, and the blade itself
+    is no pin's shadow (the median there is raised by the blade). The opening everywhere
+    moved pins' edges: it is the lower envelope of a sloping background, and a step where
+    a pin leaves the bone split two overlapping pins in the wrong places (shutters seed
+    19, 1.2 deg off)."""
     small = cv2.resize(A, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
     lo, hi = np.percentile(small, [0.5, 99.5])
     quantised = np.clip((small - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
