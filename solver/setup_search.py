@@ -14,7 +14,13 @@ it is searched for exhaustively, with each view's image telling how well a hypot
 - a hypothesis turns the bone about the knee centre and then carries the knee to where
   the views see it, so the knee stays put whatever the rotation; the best hypotheses'
   shifts say where the knee centre is seen in each view, and its rays, triangulated, place
-  it again, depth (hence the outline's scale) included.
+  it again, depth (hence the outline's scale) included;
+- coarse to fine: the coarse grid (most of the hypotheses) is first screened at half the
+  resolution (a quarter of the correlation's cost), and only the hypotheses best there are
+  scored at the search's resolution, which ranks them as before; on the study's cases the
+  best ones were well within those passed on (docs/speed.md, "Global search"). The finer
+  grids are not screened: there neighbours score alike, and the screening's ranking of
+  them differed from the full one's.
 
 The result is one correction ``C`` (tibia frame) with ``T_cam_k_tibia <- T_cam_k_tibia C``
 for every view, so the motion between views is kept exactly as the encoders measured it.
@@ -52,6 +58,12 @@ class SetupSearch:
     truncate_px: float = 40.0
     spacing_px: float = 6.0
     downscale: int = 8
+    screen_downscale: int = 16  # the coarse grid is screened at this coarser resolution first
+    screened: int = 24  # coarse-grid hypotheses the screening passes on (>= rescored)
+
+    def __post_init__(self) -> None:
+        if self.screened < self.rescored:
+            raise ValueError("the screening must pass on at least the hypotheses rescored")
 
 
 class _ViewField:
@@ -59,9 +71,9 @@ class _ViewField:
     its observed contour pixels at the reduced resolution (for the reverse distance)."""
 
     def __init__(self, camera: Camera, distance_map: DistanceMap, observed: np.ndarray,
-                 search: SetupSearch):
-        self.camera, self.search = camera, search
-        d = search.downscale
+                 search: SetupSearch, downscale: int):
+        self.camera, self.downscale = camera, downscale
+        d = downscale
         self.shape = (-(-camera.height // d), -(-camera.width // d))
         reduced = np.unique(np.round(observed / d).astype(int), axis=0)
         self.observed = reduced[self._inside(reduced)]
@@ -76,7 +88,7 @@ class _ViewField:
     def best_shift(self, uv: np.ndarray) -> tuple[float, np.ndarray]:
         """The view's score (reduced pixels) at the best image shift, and that shift in
         full-resolution pixels; an infinite score when the outline cannot be placed."""
-        d, reach = self.search.downscale, self.reach
+        d, reach = self.downscale, self.reach
         scaled = uv / d
         origin = np.floor(scaled.min(axis=0)).astype(int)
         pix = np.round(scaled - origin).astype(int)
@@ -127,8 +139,10 @@ class _Hypotheses:
                  T_tibia_anat: Pose, search: SetupSearch, pool: ThreadPoolExecutor):
         self.contour, self.views, self.search, self.pool = contour, views, search, pool
         self.T_tibia_anat, self.knee = T_tibia_anat, T_tibia_anat.t
-        self.fields = [_ViewField(camera, dmap, observed, search)
-                       for _, camera, dmap, observed in views]
+        self.fields = {screening: [_ViewField(camera, dmap, observed, search, downscale)
+                                   for _, camera, dmap, observed in views]
+                       for screening, downscale in ((False, search.downscale),
+                                                    (True, search.screen_downscale))}
 
     def correction(self, rotvec: np.ndarray, knee_at: np.ndarray) -> Pose:
         """The bone turned by ``rotvec`` (anatomical axes) about its knee centre, which is
@@ -137,20 +151,23 @@ class _Hypotheses:
         turned = A @ Pose(so3_exp(rotvec), np.zeros(3)) @ A.inverse()
         return Pose(np.eye(3), knee_at - self.knee) @ turned
 
-    def _view_score(self, C: Pose, k: int) -> tuple[float, np.ndarray]:
+    def _view_score(self, C: Pose, k: int, screening: bool) -> tuple[float, np.ndarray]:
         (T, camera, _, _), search = self.views[k], self.search
         T_c = T @ C
         S = self.contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
                                         fov_margin_px=-float(search.search_px))
         if len(S) < 10:
             return np.inf, np.zeros(2)
-        return self.fields[k].best_shift(camera.project(T_c.apply(S)))
+        return self.fields[screening][k].best_shift(camera.project(T_c.apply(S)))
 
-    def evaluate(self, rotvec: np.ndarray, knee_at: np.ndarray) -> tuple[float, list[np.ndarray]]:
+    def evaluate(self, rotvec: np.ndarray, knee_at: np.ndarray,
+                 screening: bool = False) -> tuple[float, list[np.ndarray]]:
         """Summed view scores of a hypothesis and each view's best image shift (infinite,
-        with no shifts, when the outline leaves some image)."""
+        with no shifts, when the outline leaves some image); ``screening`` scores it at the
+        screening resolution."""
         C = self.correction(rotvec, knee_at)
-        scored = list(self.pool.map(lambda k: self._view_score(C, k), range(len(self.views))))
+        scored = list(self.pool.map(lambda k: self._view_score(C, k, screening),
+                                    range(len(self.views))))
         total = sum(score for score, _ in scored)
         return (total, [shift for _, shift in scored]) if np.isfinite(total) else (np.inf, [])
 
@@ -167,6 +184,15 @@ class _Hypotheses:
         """The knee moved by each view's best image shift."""
         return self.seen_at([camera.project(T.apply(knee_at[None]))[0] + shift
                              for (T, camera, _, _), shift in zip(self.views, shifts)])
+
+    def screened(self, rotvecs: list[np.ndarray], knee_at: np.ndarray,
+                 kept: int) -> list[tuple[float, list[np.ndarray], np.ndarray]]:
+        """Score, shifts and rotation of the ``kept`` hypotheses best at the screening
+        resolution, scored at the search's, in grid order (as an exhaustive scoring would
+        meet them, so that ties go the same way)."""
+        rough = [self.evaluate(rotvec, knee_at, screening=True)[0] for rotvec in rotvecs]
+        passed = np.sort(np.argsort(rough, kind="stable")[:kept])
+        return [(*self.evaluate(rotvecs[i], knee_at), rotvecs[i]) for i in passed]
 
 
 def search_setup(
@@ -191,12 +217,11 @@ def search_setup(
         # Coarse grid: every hypothesis scored with the knee where no rotation put it, which
         # a rotation tens of degrees away sees at a somewhat wrong place and depth; the best
         # few are scored again with the knee where their own image shifts put it.
-        coarse = sorted(((h.evaluate(rotvec, knee_at), rotvec)
-                         for rotvec in _rotations(search.coarse_half_range_deg,
-                                                  search.coarse_step_deg, np.zeros(3))),
-                        key=lambda hypothesis: hypothesis[0][0])
+        coarse = sorted(h.screened(_rotations(search.coarse_half_range_deg, search.coarse_step_deg,
+                                              np.zeros(3)), knee_at, search.screened),
+                        key=lambda hypothesis: hypothesis[0])
         best: tuple[float, np.ndarray, np.ndarray] = (np.inf, np.zeros(3), knee_at)
-        for (score, shifts), rotvec in coarse[: search.rescored]:
+        for score, shifts, rotvec in coarse[: search.rescored]:
             own = knee_at
             for _ in range(2):
                 if not np.isfinite(score):  # the outline left some image

@@ -83,7 +83,8 @@ def _default_searches() -> tuple[SetupSearch, ...]:
     """+-30, then +-60, then +-90 deg (docs/decisions/2026-12-05-global-search.md)."""
     return (SetupSearch(),
             SetupSearch(coarse_half_range_deg=60.0, coarse_step_deg=20.0, refinements=3),
-            SetupSearch(coarse_half_range_deg=90.0, coarse_step_deg=30.0, refinements=4, rescored=16))
+            SetupSearch(coarse_half_range_deg=90.0, coarse_step_deg=30.0, refinements=4, rescored=16,
+                        screened=48))
 
 
 @dataclass(frozen=True)

@@ -539,23 +539,31 @@ def test_a_pin_partly_off_its_contour_sends_the_solve_to_the_global_search(real_
     assert max(_errors(case, outcome)) < 0.2
 
 
+def _set_up_error(plan, case, T_cam_tibia: Pose) -> tuple[float, float]:
+    """Rotation (deg) and translation (mm) of the patient set-up error of the first view's
+    pose (at the knee, anatomical frame)."""
+    from slamtka.solver.geometry import so3_log
+
+    anatomy = plan.landmarks.T_tibia_anat()
+    D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
+    return float(np.degrees(np.linalg.norm(so3_log(D.R)))), float(np.linalg.norm(D.t))
+
+
+def _searched(plan, case, initial: list[Pose], search) -> Pose:
+    """The global search's correction from the views' ``initial`` poses."""
+    from slamtka.solver.setup_search import search_setup
+
+    views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
+             for T, v in zip(initial, case.views)]
+    return search_setup(plan.bone_model().coarse_contour, views, plan.landmarks.T_tibia_anat(),
+                        search)
+
+
 def _left_after_search(plan, case, initial: list[Pose], search) -> tuple[float, float]:
     """Rotation (deg) and translation (mm) of the patient set-up error left after the
     global search from the views' ``initial`` poses (at the knee, anatomical frame)."""
-    from slamtka.solver.geometry import so3_log
-    from slamtka.solver.setup_search import search_setup
-
-    anatomy = plan.landmarks.T_tibia_anat()
-
-    def error(T_cam_tibia: Pose) -> tuple[float, float]:
-        D = (case.truth_T_cam_tibia[0] @ anatomy).inverse() @ (T_cam_tibia @ anatomy)
-        return float(np.degrees(np.linalg.norm(so3_log(D.R)))), float(np.linalg.norm(D.t))
-
-    assert min(error(initial[0])) > 20.0
-    views = [(T, v.camera, v.distance_map("bone"), v.contours["bone"])
-             for T, v in zip(initial, case.views)]
-    return error(initial[0] @ search_setup(plan.bone_model().coarse_contour, views, anatomy,
-                                           search))
+    assert min(_set_up_error(plan, case, initial[0])) > 20.0
+    return _set_up_error(plan, case, initial[0] @ _searched(plan, case, initial, search))
 
 
 @pytest.mark.system
@@ -593,6 +601,32 @@ def test_wide_setup_search_recovers_study_cases_it_used_to_miss(phantom_plan, le
     rotation_deg, translation_mm = _left_after_search(
         phantom_plan, case, list(case.initial.T_cam_tibia), SolverConfig().global_searches[1])
     assert rotation_deg < 8.0 and translation_mm < 10.0
+
+
+def test_a_screened_search_finds_the_pose_scoring_every_hypothesis_finds(phantom_plan):
+    """Level-3 study case 3005, 26 deg and 137 mm off: the +-30 deg search, its coarse grid
+    screened at half resolution, brings the set-up within a few degrees, to the pose that
+    scoring all 125 coarse hypotheses at full resolution (the search before the screening)
+    chooses."""
+    from slamtka.solver.geometry import so3_log
+    from slamtka.solver.setup_search import SetupSearch
+
+    case = simulate_case(phantom_plan, SimulationConfig.at_level(3, 3005))
+    initial = list(case.initial.T_cam_tibia)
+    assert min(_set_up_error(phantom_plan, case, initial[0])) > 20.0
+    screened = _searched(phantom_plan, case, initial, SetupSearch())
+    rotation_deg, translation_mm = _set_up_error(phantom_plan, case, initial[0] @ screened)
+    assert rotation_deg < 3.0 and translation_mm < 5.0
+    exhaustive = _searched(phantom_plan, case, initial, SetupSearch(screened=125))
+    apart = screened.inverse() @ exhaustive
+    assert np.degrees(np.linalg.norm(so3_log(apart.R))) < 0.1 and np.linalg.norm(apart.t) < 0.1
+
+
+def test_a_screening_that_passes_on_fewer_than_are_rescored_is_refused():
+    from slamtka.solver.setup_search import SetupSearch
+
+    with pytest.raises(ValueError, match="screening"):
+        SetupSearch(rescored=8, screened=4)
 
 
 def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_plan):

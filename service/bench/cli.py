@@ -27,6 +27,7 @@ from slamtka.bench.hardening import add_hardening_bench_parser
 from slamtka.bench.imaging import add_imaging_bench_parser
 from slamtka.bench.link import add_link_bench
 from slamtka.bench.realism import add_realism_bench_parser
+from slamtka.bench.search import add_search_bench_parser
 from slamtka.bench.service import add_service_bench_parser
 from slamtka.bench.speed import add_speed_bench_parser
 from slamtka.bench.workflow import add_workflow_bench_parser
@@ -227,6 +228,7 @@ def add_bench_parser(sub: argparse._SubParsersAction) -> None:
     add_link_bench(kinds)
     add_service_bench_parser(kinds)
     add_speed_bench_parser(kinds)
+    add_search_bench_parser(kinds)
     add_workflow_bench_parser(kinds)
     add_degenerate_bench_parser(kinds)
     add_imaging_bench_parser(kinds)

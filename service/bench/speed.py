@@ -79,13 +79,20 @@ def _table(runs: list[dict], peak_mb: float, rss_mb: float) -> str:
     return "\n".join(lines)
 
 
-def run_speed(args: argparse.Namespace) -> int:
-    args.out.mkdir(parents=True, exist_ok=True)
+def warmed_plan(args: argparse.Namespace) -> Plan:
+    """The plan of ``--tibia``, ``--fibula``, ``--landmarks`` (the phantom without), its
+    models built and the kernels compiled, as the service has them once started."""
     plan = phantom_plan() if args.tibia is None else Plan.from_meshes(args.tibia, args.fibula,
                                                                       args.landmarks)
     plan.bone_model()
     plan.pin_model()
-    kernels.warm_up()  # as the service does at its start
+    kernels.warm_up()
+    return plan
+
+
+def run_speed(args: argparse.Namespace) -> int:
+    args.out.mkdir(parents=True, exist_ok=True)
+    plan = warmed_plan(args)
     runs = [_timed_solve(plan, args.seed + i, args.level) for i in range(args.cases)]
     peak_mb = _peak_allocation_mb(plan, args.seed, args.level)
     rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
