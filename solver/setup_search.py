@@ -20,7 +20,9 @@ it is searched for exhaustively, with each view's image telling how well a hypot
   scored at the search's resolution, which ranks them as before; on the study's cases the
   best ones were well within those passed on (docs/speed.md, "Global search"). The finer
   grids are not screened: there neighbours score alike, and the screening's ranking of
-  them differed from the full one's.
+  them differed from the full one's. They look for image shifts of at most
+  ``refine_search_px`` (a fifth of the window's area): the knee is placed by then, and
+  turning the bone about it moves little of the outline's place.
 
 The result is one correction ``C`` (tibia frame) with ``T_cam_k_tibia <- T_cam_k_tibia C``
 for every view, so the motion between views is kept exactly as the encoders measured it.
@@ -60,10 +62,13 @@ class SetupSearch:
     downscale: int = 8
     screen_downscale: int = 16  # the coarse grid is screened at this coarser resolution first
     screened: int = 24  # coarse-grid hypotheses the screening passes on (>= rescored)
+    refine_search_px: int = 200  # largest image shift in the refinements, the knee placed
 
     def __post_init__(self) -> None:
         if self.screened < self.rescored:
             raise ValueError("the screening must pass on at least the hypotheses rescored")
+        if not 0 < self.refine_search_px <= self.search_px:
+            raise ValueError("the refinements' shifts must lie within the search's")
 
 
 class _ViewField:
@@ -85,10 +90,12 @@ class _ViewField:
         self.padded = cv2.copyMakeBorder(field, self.pad, self.pad, self.pad, self.pad,
                                          cv2.BORDER_CONSTANT, value=self.truncate)
 
-    def best_shift(self, uv: np.ndarray) -> tuple[float, np.ndarray]:
-        """The view's score (reduced pixels) at the best image shift, and that shift in
-        full-resolution pixels; an infinite score when the outline cannot be placed."""
-        d, reach = self.downscale, self.reach
+    def best_shift(self, uv: np.ndarray, search_px: int) -> tuple[float, np.ndarray]:
+        """The view's score (reduced pixels) at the best image shift within ``search_px``
+        (full-resolution pixels, at most the search's), and that shift in full-resolution
+        pixels; an infinite score when the outline cannot be placed."""
+        d = self.downscale
+        reach = -(-search_px // d)
         scaled = uv / d
         origin = np.floor(scaled.min(axis=0)).astype(int)
         pix = np.round(scaled - origin).astype(int)
@@ -151,22 +158,24 @@ class _Hypotheses:
         turned = A @ Pose(so3_exp(rotvec), np.zeros(3)) @ A.inverse()
         return Pose(np.eye(3), knee_at - self.knee) @ turned
 
-    def _view_score(self, C: Pose, k: int, screening: bool) -> tuple[float, np.ndarray]:
+    def _view_score(self, C: Pose, k: int, screening: bool,
+                    search_px: int) -> tuple[float, np.ndarray]:
         (T, camera, _, _), search = self.views[k], self.search
         T_c = T @ C
         S = self.contour.outline_points(T_c, camera, search.spacing_px, outer_only=False,
                                         fov_margin_px=-float(search.search_px))
         if len(S) < 10:
             return np.inf, np.zeros(2)
-        return self.fields[screening][k].best_shift(camera.project(T_c.apply(S)))
+        return self.fields[screening][k].best_shift(camera.project(T_c.apply(S)), search_px)
 
-    def evaluate(self, rotvec: np.ndarray, knee_at: np.ndarray,
-                 screening: bool = False) -> tuple[float, list[np.ndarray]]:
+    def evaluate(self, rotvec: np.ndarray, knee_at: np.ndarray, screening: bool = False,
+                 search_px: int | None = None) -> tuple[float, list[np.ndarray]]:
         """Summed view scores of a hypothesis and each view's best image shift (infinite,
         with no shifts, when the outline leaves some image); ``screening`` scores it at the
-        screening resolution."""
+        screening resolution, ``search_px`` limits the shifts (default: the search's)."""
         C = self.correction(rotvec, knee_at)
-        scored = list(self.pool.map(lambda k: self._view_score(C, k, screening),
+        reach = self.search.search_px if search_px is None else search_px
+        scored = list(self.pool.map(lambda k: self._view_score(C, k, screening, reach),
                                     range(len(self.views))))
         total = sum(score for score, _ in scored)
         return (total, [shift for _, shift in scored]) if np.isfinite(total) else (np.inf, [])
@@ -234,7 +243,7 @@ def search_setup(
         for half in [search.coarse_step_deg / 2**i for i in range(1, search.refinements + 1)]:
             fine: tuple[float, np.ndarray, list[np.ndarray]] = (np.inf, best_rotvec, [])
             for rotvec in _rotations(half, half, best_rotvec):
-                score, shifts = h.evaluate(rotvec, knee_at)
+                score, shifts = h.evaluate(rotvec, knee_at, search_px=search.refine_search_px)
                 if score < fine[0]:
                     fine = (score, rotvec, shifts)
             score, best_rotvec, shifts = fine
