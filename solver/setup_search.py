@@ -223,9 +223,10 @@ def search_setup(
         if not np.isfinite(score):
             return Pose.identity()
         knee_at = h.shifted(knee_at, shifts)
-        # Coarse grid: every hypothesis scored with the knee where no rotation put it, which
-        # a rotation tens of degrees away sees at a somewhat wrong place and depth; the best
-        # few are scored again with the knee where their own image shifts put it.
+        # Coarse grid: every hypothesis screened, and the best scored, with the knee where no
+        # rotation put it, which a rotation tens of degrees away sees at a somewhat wrong
+        # place and depth; the best few are scored again with the knee where their own image
+        # shifts put it.
         coarse = sorted(h.screened(_rotations(search.coarse_half_range_deg, search.coarse_step_deg,
                                               np.zeros(3)), knee_at, search.screened),
                         key=lambda hypothesis: hypothesis[0])
