@@ -14,7 +14,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import igl
 import numpy as np
 
 from slamtka.solver.kernels import trilinear
@@ -43,6 +42,8 @@ def _exact_signed_distance(
     points: np.ndarray, meshes: Sequence[Surface], band_mm: float | None
 ) -> np.ndarray:
     """Signed distance (negative inside) to the union of ``meshes``; NaN beyond ``band_mm``."""
+    import igl  # with scipy.sparse, ~25 MB: only building a field needs it, never a solve
+
     result = np.full(len(points), np.inf)
     bound = np.inf if band_mm is None else band_mm
     for mesh in meshes:

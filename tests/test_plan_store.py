@@ -14,8 +14,10 @@ from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import Plan
 from slamtka.solver.surface import Surface
 
-# Modules a solve must not load: trimesh pulls in scipy.spatial and scipy.special (~1 s).
-_HEAVY = ("trimesh", "scipy.spatial", "scipy.special", "scipy.optimize", "rerun", "pydicom")
+# Modules a solve must not load: trimesh pulls in scipy.spatial and scipy.special (~1 s),
+# libigl (building distance fields) scipy.sparse.
+_HEAVY = ("trimesh", "igl", "scipy.sparse", "scipy.spatial", "scipy.special", "scipy.optimize", "rerun",
+          "pydicom")
 
 
 @pytest.fixture(scope="module")
