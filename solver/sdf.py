@@ -34,8 +34,9 @@ _COARSE_FACTOR = 4
 # apart or in the wrong units.
 MAX_GRID_VOXELS = 12_000_000
 # Grid points sampled at once while building: bounds the build's peak memory (libigl's
-# outputs take about 300 bytes per point) to some 80 MB over the grid itself.
-_SLAB_POINTS = 262_144
+# outputs take about 300 bytes per point) to some 40 MB over the grid itself; the values
+# do not depend on it.
+_SLAB_POINTS = 131_072
 
 
 def _exact_signed_distance(
