@@ -40,7 +40,7 @@ from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import ContourGenerator, simplified
 from slamtka.solver.surface import Surface, mesh_digest
 
-__all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout", "read_surface"]
+__all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout"]
 
 log = logging.getLogger(__name__)
 
@@ -108,15 +108,16 @@ def check_layout(tibia: Surface, fibula: Surface | None, landmarks: Landmarks,
             "landmarks of another mesh, frame or units")
 
 
-def read_surface(path: Path, extent_mm: tuple[float, float], units: str = "auto",
-                 require_watertight: bool = False, cache_dir: Path | None = None) -> Surface:
+def _read_surface(path: Path, extent_mm: tuple[float, float], units: str = "auto",
+                  require_watertight: bool = False, cache_dir: Path | None = None) -> Surface:
     """A mesh file's surface in mm, checked (:func:`slamtka.solver.meshes.load_mesh`): read
     from ``cache_dir`` when the file was read before (the entry is named by the file's
     bytes), else read with trimesh and stored there."""
     stored = None
     if cache_dir is not None and path.is_file():
-        file_hash = hashlib.sha256(path.read_bytes()).hexdigest()
-        stored = Path(cache_dir) / f"surface-{cache_key(file_hash, units, extent_mm, require_watertight, _STORE_VERSION)}.npz"
+        key = cache_key(hashlib.sha256(path.read_bytes()).hexdigest(), units, extent_mm,
+                        require_watertight, _STORE_VERSION)
+        stored = Path(cache_dir) / f"surface-{key}.npz"
         arrays = read_arrays(stored, "mesh")
         if arrays is not None:
             return Surface(arrays["vertices"], arrays["faces"])
@@ -215,8 +216,8 @@ class Plan:
                     segmentation_sd_mm: float = DEFAULT_SEGMENTATION_SD_MM) -> Plan:
         """A plan from mesh files (units detected) and a landmarks JSON, default pin."""
         spec = PinSpec()
-        tibia_mesh = read_surface(tibia, BONE_EXTENT_MM)
-        fibula_mesh = None if fibula is None else read_surface(fibula, BONE_EXTENT_MM)
+        tibia_mesh = _read_surface(tibia, BONE_EXTENT_MM)
+        fibula_mesh = None if fibula is None else _read_surface(fibula, BONE_EXTENT_MM)
         marks = Landmarks.load(landmarks)
         check_layout(tibia_mesh, fibula_mesh, marks, str(fibula), str(landmarks))
         return Plan(tibia_mesh, fibula_mesh, marks, build_pin(spec), spec, target,
@@ -297,21 +298,21 @@ class Plan:
             raise ValueError(f"{path}: format {doc.get('format')!r} is not {PLAN_FORMAT!r}")
         try:
             cache = folder / "cache"
-            tibia = read_surface(folder / doc["tibia"]["file"], BONE_EXTENT_MM,
-                                 doc["tibia"].get("units", "auto"), cache_dir=cache)
+            tibia = _read_surface(folder / doc["tibia"]["file"], BONE_EXTENT_MM,
+                                  doc["tibia"].get("units", "auto"), cache_dir=cache)
             fibula = None
             if doc.get("fibula"):
-                fibula = read_surface(folder / doc["fibula"]["file"], BONE_EXTENT_MM,
-                                      doc["fibula"].get("units", "auto"), cache_dir=cache)
+                fibula = _read_surface(folder / doc["fibula"]["file"], BONE_EXTENT_MM,
+                                       doc["fibula"].get("units", "auto"), cache_dir=cache)
             landmarks = Landmarks.from_json(doc["landmarks"])
             if landmarks.side != doc["side"]:
                 raise ValueError(f"{path}: plan side {doc['side']!r} differs from landmarks")
             pin_doc = doc.get("pin", {"parametric": {}})
             if "file" in pin_doc:
                 pin_spec = None
-                pin_mesh = read_surface(folder / pin_doc["file"], PIN_EXTENT_MM,
-                                        pin_doc.get("units", "auto"), require_watertight=True,
-                                        cache_dir=cache)
+                pin_mesh = _read_surface(folder / pin_doc["file"], PIN_EXTENT_MM,
+                                         pin_doc.get("units", "auto"), require_watertight=True,
+                                         cache_dir=cache)
             else:
                 pin_spec = PinSpec(**pin_doc.get("parametric", {}))
                 pin_mesh = build_pin(pin_spec)
