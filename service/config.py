@@ -234,16 +234,20 @@ class CarmConfig:
     kinematics: dict = field(default_factory=dict)
     setup: dict = field(default_factory=dict)
 
-    def check(self, where: str) -> None:
-        from slamtka.drivers.encoder_link import LinkConfig
-        from slamtka.drivers.kinematics import CArmKinematics, PatientSetup
-        from slamtka.solver.anatomy import Landmarks
-
+    def check(self, where: str, drivers: bool = True) -> None:
+        """Without ``drivers`` the link, kinematics and set-up are not parsed: the drivers
+        import numpy and pyserial (0.13 s), which a health check need not pay."""
         if self.calibration_match not in ("device_serial_number", "station_name", "calling_ae_title"):
             raise ConfigError(f"{where}.calibration_match: {self.calibration_match!r} must be "
                               "'device_serial_number', 'station_name' or 'calling_ae_title'")
         _check_range(f"{where}.angle_check_deg", self.angle_check_deg, 0.1, 45.0)
         _check_range(f"{where}.max_clock_offset_s", self.max_clock_offset_s, 0.0, 60.0)
+        if not drivers:
+            return
+        from slamtka.drivers.encoder_link import LinkConfig
+        from slamtka.drivers.kinematics import CArmKinematics, PatientSetup
+        from slamtka.solver.anatomy import Landmarks
+
         for key, parse in (("link", LinkConfig.from_config),
                            ("kinematics", CArmKinematics.from_config)):
             try:
@@ -349,9 +353,10 @@ class ServiceConfig:
     destinations: list[Destination] = field(default_factory=list)
     source: Path | None = None  # the TOML file this came from (not a key)
 
-    def check(self) -> None:
+    def check(self, drivers: bool = True) -> None:
+        """Every section's values; ``drivers``: see :meth:`CarmConfig.check`."""
         self.dicom.check("dicom")
-        self.carm.check("carm")
+        self.carm.check("carm", drivers)
         self.pipeline.check("pipeline")
         self.sender.check("sender")
         self.health.check("health")
@@ -450,15 +455,17 @@ def _apply_env(table: dict, environ: Mapping[str, str]) -> dict:
 
 
 def config_from_dict(table: dict, base: Path | None = None,
-                     environ: Mapping[str, str] | None = None) -> ServiceConfig:
-    """A validated configuration from a parsed TOML table (and the environment)."""
+                     environ: Mapping[str, str] | None = None, drivers: bool = True) -> ServiceConfig:
+    """A validated configuration from a parsed TOML table (and the environment);
+    ``drivers``: see :meth:`CarmConfig.check`."""
     table = _apply_env(copy.deepcopy(table), os.environ if environ is None else environ)
     config = build_table(ServiceConfig, table, "", base)
-    config.check()
+    config.check(drivers)
     return config
 
 
-def load_config(path: Path, environ: Mapping[str, str] | None = None) -> ServiceConfig:
+def load_config(path: Path, environ: Mapping[str, str] | None = None,
+                drivers: bool = True) -> ServiceConfig:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: configuration file not found")
@@ -468,5 +475,5 @@ def load_config(path: Path, environ: Mapping[str, str] | None = None) -> Service
         raise ConfigError(f"{path}: not a text (UTF-8) file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    config = config_from_dict(table, path.parent.resolve(), environ)
+    config = config_from_dict(table, path.parent.resolve(), environ, drivers)
     return dataclasses.replace(config, source=path.resolve())

@@ -512,7 +512,7 @@ class Pipeline:
     def _solver_inputs(self, plan: Plan, observations: list[ViewObservation],
                        initial: InitialGuess) -> dict:
         """Exactly what the solver was given (float64 JSON), for ``slamtka replay --resolve``."""
-        from slamtka.solver.sdf import mesh_digest
+        from slamtka.solver.surface import mesh_digest
 
         return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()

@@ -32,16 +32,18 @@ import uuid
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-import trimesh
 
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.jsonfile import read_json_object
-from slamtka.solver.meshes import load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import BONE_EXTENT_MM, DEFAULT_SEGMENTATION_SD_MM, Plan, Target, check_layout
+from slamtka.solver.surface import Surface
+
+if TYPE_CHECKING:
+    import trimesh
 
 __all__ = ["PlanFinder", "PlanStore", "PlanSummary", "estimate_landmarks", "add_plan_parser",
            "LATERALITY_TO_SIDE"]
@@ -279,8 +281,10 @@ def _patient_id(text: str) -> str:
 
 
 def cmd_plan_add(args: argparse.Namespace) -> int:
-    tibia = load_mesh(args.tibia, BONE_EXTENT_MM)
-    fibula = None if args.fibula is None else load_mesh(args.fibula, BONE_EXTENT_MM)
+    from slamtka.solver.meshes import load_mesh  # trimesh (~1 s to import): only `plan add` reads meshes
+
+    tibia_mesh = load_mesh(args.tibia, BONE_EXTENT_MM)
+    fibula_mesh = None if args.fibula is None else load_mesh(args.fibula, BONE_EXTENT_MM)
     if args.landmarks is not None:
         landmarks = Landmarks.load(args.landmarks)
         if landmarks.side != args.side:
@@ -288,7 +292,7 @@ def cmd_plan_add(args: argparse.Namespace) -> int:
         how = "given"
     else:
         try:
-            landmarks = estimate_landmarks(tibia, fibula, args.side)
+            landmarks = estimate_landmarks(tibia_mesh, fibula_mesh, args.side)
         except ValueError as exc:
             raise ValueError(f"{args.tibia}: {exc}") from None
         how = "estimated"
@@ -296,6 +300,8 @@ def cmd_plan_add(args: argparse.Namespace) -> int:
               f"(knee centre {np.round(landmarks.knee_centre, 1).tolist()} mm, ankle centre "
               f"{np.round(landmarks.ankle_centre, 1).tolist()} mm); check them with "
               "`slamtka plan show`")
+    tibia = Surface.of(tibia_mesh)
+    fibula = None if fibula_mesh is None else Surface.of(fibula_mesh)
     check_layout(tibia, fibula, landmarks, str(args.fibula),
                  str(args.landmarks) if args.landmarks is not None else "estimated landmarks")
     target = Target(args.target_ctr, args.target_str, args.tolerance)

@@ -31,12 +31,12 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun_bindings
-import trimesh
 
 from slamtka.service.frames import Frame
 from slamtka.solver.geometry import Pose
 from slamtka.solver.optimizer import IterationInfo
 from slamtka.solver.plan import Plan
+from slamtka.solver.surface import Surface
 
 __all__ = ["CaseRecorder", "APPLICATION_ID", "STAGES"]
 
@@ -51,10 +51,10 @@ def _transform(T: Pose) -> rr.Transform3D:
     return rr.Transform3D(translation=T.t.astype(np.float32), mat3x3=T.R.astype(np.float32))
 
 
-def _mesh(mesh: trimesh.Trimesh, colour: tuple[int, int, int]) -> rr.Mesh3D:
+def _mesh(mesh: Surface, colour: tuple[int, int, int]) -> rr.Mesh3D:
     return rr.Mesh3D(vertex_positions=np.asarray(mesh.vertices, np.float32),
                      triangle_indices=np.asarray(mesh.faces, np.uint32),
-                     vertex_normals=np.asarray(mesh.vertex_normals, np.float32),
+                     vertex_normals=np.asarray(mesh.to_trimesh().vertex_normals, np.float32),
                      albedo_factor=colour)
 
 
@@ -157,7 +157,7 @@ class CaseRecorder:
 
     # -- the result -----------------------------------------------------------------------
     def final(self, view_ids: list[str], T_cam_tibia: list[Pose], T_tibia_pin: list[Pose],
-              pin_mesh: trimesh.Trimesh, plane_polygon: np.ndarray | None,
+              pin_mesh: Surface, plane_polygon: np.ndarray | None,
               residual_rms: dict[str, float]) -> None:
         for view_id, T in zip(view_ids, T_cam_tibia):
             self.rec.log(f"world/final/{view_id}", _transform(T.inverse()))

@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from slamtka.service.results import MeasurementResult
 from slamtka.solver.anatomy import Landmarks
@@ -30,8 +29,8 @@ from slamtka.solver.measurement import fit_resection_plane
 from slamtka.solver.observations import LABELS, ViewObservation, VisibleRegion
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
-from slamtka.solver.sdf import mesh_digest
 from slamtka.solver.slam import InitialGuess, SolverConfig, solve_joint
+from slamtka.solver.surface import Surface, mesh_digest
 
 __all__ = ["Recording", "read_recording", "check_recording", "resolve_recording",
            "add_replay_parser"]
@@ -51,7 +50,7 @@ class Recording:
     texts: dict[str, list[str]] = field(default_factory=dict)  # TextLog lines
     documents: dict[str, dict] = field(default_factory=dict)  # JSON TextDocuments (last)
     scalars: dict[str, list[float]] = field(default_factory=dict)
-    meshes: dict[str, trimesh.Trimesh] = field(default_factory=dict)
+    meshes: dict[str, Surface] = field(default_factory=dict)
     points: dict[str, int] = field(default_factory=dict)  # Points2D entity -> point count
 
     @property
@@ -111,8 +110,8 @@ def read_recording(path: Path) -> Recording:
         vertices = columns.get((entity, "Mesh3D:vertex_positions"))
         faces = columns.get((entity, "Mesh3D:triangle_indices"))
         if vertices and faces and entity.startswith("plan/"):
-            rec.meshes[entity] = trimesh.Trimesh(np.asarray(vertices[-1], float),
-                                                 np.asarray(faces[-1], np.int64), process=False)
+            rec.meshes[entity] = Surface(np.asarray(vertices[-1], float),
+                                         np.asarray(faces[-1], np.int64))
     return rec
 
 

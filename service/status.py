@@ -203,7 +203,9 @@ def read_status(path: Path) -> dict | None:
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    config = load_config(args.config)
+    # The C-arm's link and kinematics are the service's to check at its start: a health
+    # check run every few seconds reads paths and the DICOM section only.
+    config = load_config(args.config, drivers=False)
     status = read_status(config.status_file)
     ok = judge(status).up
     if args.metrics:

@@ -20,6 +20,7 @@ import numpy as np
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.jsonfile import read_json_object
+from slamtka.solver.surface import UNIT_SCALE_TO_MM
 
 __all__ = ["Landmarks", "SIGN_CONVENTION", "resection_angles", "plane_normal_from_angles"]
 
@@ -103,8 +104,6 @@ class Landmarks:
 
         ``anterior`` is a direction; ``tuberosity`` (a point) may be given instead.
         """
-        from slamtka.solver.meshes import UNIT_SCALE_TO_MM
-
         units = d.get("units", "mm")
         if scale_to_mm is None:
             if units not in UNIT_SCALE_TO_MM:

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-__all__ = ["MeshError", "load_mesh", "UNIT_SCALE_TO_MM"]
+from slamtka.solver.surface import UNIT_SCALE_TO_MM
+
+__all__ = ["MeshError", "load_mesh"]
 
 log = logging.getLogger(__name__)
 
-UNIT_SCALE_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 _SUPPORTED_SUFFIXES = {".stl", ".ply", ".obj"}
 
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
+
+from slamtka.solver.surface import Surface
 
 __all__ = ["PinSpec", "build_pin"]
 
@@ -37,8 +38,9 @@ class PinSpec:
             raise ValueError(f"pin tip length {self.tip_length_mm} mm is implausible")
 
 
-def build_pin(spec: PinSpec = PinSpec()) -> trimesh.Trimesh:
-    """Watertight triangle mesh of the pin in the pin frame (mm)."""
+def build_pin(spec: PinSpec = PinSpec()) -> Surface:
+    """Watertight triangle mesh of the pin in the pin frame (mm): distinct vertices and
+    outward-wound faces by construction, as trimesh's processing would leave them."""
     radius = spec.diameter_mm / 2.0
     theta = np.arange(_AROUND) * (2.0 * np.pi / _AROUND)
     facet_dirs = np.array([0.0, 2.0 * np.pi / 3.0, 4.0 * np.pi / 3.0])
@@ -74,7 +76,4 @@ def build_pin(spec: PinSpec = PinSpec()) -> trimesh.Trimesh:
     centre = len(vertices) - 1
     last = ring(_TIP_RINGS)
     faces.append(np.column_stack([np.full(_AROUND, centre), last, last[nxt]]))
-    mesh = trimesh.Trimesh(vertices, np.vstack(faces), process=True)
-    if not mesh.is_watertight or mesh.volume <= 0:
-        raise RuntimeError("internal error: the parametric pin mesh is not a closed solid")
-    return mesh
+    return Surface(vertices, np.vstack(faces).astype(np.int64))

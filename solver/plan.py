@@ -10,34 +10,39 @@ Plan folder::
     plan.json        format, patient, side, mesh files with units, landmarks, pin, target,
                      the bone's segmentation error (SD, mm)
     tibia.stl ...    meshes named in plan.json
-    cache/           signed distance fields and simplified silhouette meshes, keyed by
-                     mesh hash (safe to delete)
+    cache/           the meshes' processed arrays, signed distance fields and silhouette
+                     topology, keyed by what they derive from (safe to delete:
+                     solver.plan_cache); written when the plan is added, so that loading
+                     a plan for a solve reads arrays and never needs trimesh
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import math
 import numbers
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import cast
 
 import numpy as np
-import trimesh
 
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
 from slamtka.solver.jsonfile import read_json_object
-from slamtka.solver.meshes import load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
+from slamtka.solver.plan_cache import cache_key, read_arrays, write_arrays
 from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.silhouette import ContourGenerator, simplified
+from slamtka.solver.surface import Surface, mesh_digest
 
 __all__ = ["Plan", "Target", "RigidModel", "PLAN_FORMAT", "check_layout"]
+
+log = logging.getLogger(__name__)
 
 PLAN_FORMAT = "slamtka-plan/1"
 BONE_EXTENT_MM = (40.0, 600.0)
@@ -46,6 +51,8 @@ PIN_EXTENT_MM = (20.0, 300.0)
 # than a pixel, and the cost per iteration stays low.
 _SILHOUETTE_MAX_FACES = 6000
 _SEARCH_MAX_FACES = 1500
+# Bump when the stored surfaces or silhouette topology change meaning.
+_STORE_VERSION = 1
 # Segmentation error of a bone surface from CT (SD, mm), when the plan does not state its own.
 DEFAULT_SEGMENTATION_SD_MM = 0.5
 # A fibula lies beside its tibia and the knee centre on the tibia's plateau, so their bounding
@@ -80,7 +87,7 @@ def _box_gap(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(np.maximum(0.0, np.maximum(a[0] - b[1], b[0] - a[1]))))
 
 
-def check_layout(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None, landmarks: Landmarks,
+def check_layout(tibia: Surface, fibula: Surface | None, landmarks: Landmarks,
                  fibula_name: str = "fibula", landmarks_name: str = "landmarks") -> None:
     """Refuse a fibula or landmarks that cannot belong to this tibia (another patient, frame
     or units): caught at import, with the file named, rather than as a wrong measurement or
@@ -101,12 +108,61 @@ def check_layout(tibia: trimesh.Trimesh, fibula: trimesh.Trimesh | None, landmar
             "landmarks of another mesh, frame or units")
 
 
+def _read_surface(path: Path, extent_mm: tuple[float, float], units: str = "auto",
+                  require_watertight: bool = False, cache_dir: Path | None = None) -> Surface:
+    """A mesh file's surface in mm, checked (:func:`slamtka.solver.meshes.load_mesh`): read
+    from ``cache_dir`` when the file was read before (the entry is named by the file's
+    bytes), else read with trimesh and stored there."""
+    stored = None
+    if cache_dir is not None and path.is_file():
+        key = cache_key(hashlib.sha256(path.read_bytes()).hexdigest(), units, extent_mm,
+                        require_watertight, _STORE_VERSION)
+        stored = Path(cache_dir) / f"surface-{key}.npz"
+        arrays = read_arrays(stored, "mesh")
+        if arrays is not None:
+            return Surface(arrays["vertices"], arrays["faces"])
+    from slamtka.solver.meshes import load_mesh  # needs trimesh (~1 s to import): files not read before
+
+    surface = Surface.of(load_mesh(path, extent_mm, units, require_watertight))
+    if stored is not None:
+        log.info("%s: read with trimesh; its arrays are stored in %s", path, stored.parent)
+        write_arrays(stored, vertices=surface.vertices, faces=surface.faces)
+    return surface
+
+
+def _union(meshes: Sequence[Surface]) -> Surface:
+    """One surface of all ``meshes`` (their faces re-indexed into the joined vertices)."""
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    return Surface(np.vstack([m.vertices for m in meshes]),
+                   np.vstack([m.faces + o for m, o in zip(meshes, offsets)]))
+
+
+def _silhouettes(meshes: Sequence[Surface], cache_dir: Path | None
+                 ) -> tuple[ContourGenerator, ContourGenerator]:
+    """The silhouette topology of the meshes' union, simplified for the iterations and
+    further for the global set-up search: read from ``cache_dir``, else built (decimating
+    and finding each edge's faces needs trimesh and ~0.1 s per model) and stored there."""
+    path = None
+    if cache_dir is not None:
+        key = cache_key(mesh_digest(meshes), _SILHOUETTE_MAX_FACES, _SEARCH_MAX_FACES, _STORE_VERSION)
+        path = Path(cache_dir) / f"silhouettes-{key}.npz"
+        arrays = read_arrays(path, "silhouette topology")
+        if arrays is not None:
+            return ContourGenerator.from_arrays(arrays, "fine_"), ContourGenerator.from_arrays(arrays, "coarse_")
+    fine = simplified(_union(meshes).to_trimesh(), _SILHOUETTE_MAX_FACES)
+    coarse = simplified(fine, _SEARCH_MAX_FACES)
+    contour, coarse_contour = ContourGenerator.from_mesh(fine), ContourGenerator.from_mesh(coarse)
+    if path is not None:
+        write_arrays(path, **contour.arrays("fine_"), **coarse_contour.arrays("coarse_"))
+    return contour, coarse_contour
+
+
 @dataclass
 class RigidModel:
     """A rigid body as the solver sees it: signed distance field and silhouette topology."""
 
     name: str
-    meshes: list[trimesh.Trimesh]
+    meshes: list[Surface]
     sdf: SignedDistanceField
     contour: ContourGenerator
     coarse_contour: ContourGenerator  # a lighter mesh for the global set-up search
@@ -114,27 +170,23 @@ class RigidModel:
     @staticmethod
     def build(
         name: str,
-        meshes: list[trimesh.Trimesh],
+        meshes: list[Surface],
         sdf_spacing_mm: float,
         cache_dir: Path | None,
     ) -> RigidModel:
         margin = 8.0 * sdf_spacing_mm
         sdf = SignedDistanceField.cached(meshes, sdf_spacing_mm, margin, cache_dir)
-        combined = cast(trimesh.Trimesh, trimesh.util.concatenate(meshes)) if len(meshes) > 1 else meshes[0]
-        combined = simplified(combined, _SILHOUETTE_MAX_FACES, cache_dir)
-        coarse = simplified(combined, _SEARCH_MAX_FACES, cache_dir)
-        return RigidModel(name, meshes, sdf, ContourGenerator.from_mesh(combined),
-                          ContourGenerator.from_mesh(coarse))
+        return RigidModel(name, meshes, sdf, *_silhouettes(meshes, cache_dir))
 
 
 @dataclass
 class Plan:
     """Everything known before surgery about one patient's tibia and the pins."""
 
-    tibia: trimesh.Trimesh
-    fibula: trimesh.Trimesh | None
+    tibia: Surface
+    fibula: Surface | None
     landmarks: Landmarks
-    pin_mesh: trimesh.Trimesh
+    pin_mesh: Surface
     pin_spec: PinSpec | None  # None when a custom pin mesh replaces the parametric pin
     target: Target = field(default_factory=Target)
     patient_id: str = "ANON"
@@ -164,14 +216,14 @@ class Plan:
                     segmentation_sd_mm: float = DEFAULT_SEGMENTATION_SD_MM) -> Plan:
         """A plan from mesh files (units detected) and a landmarks JSON, default pin."""
         spec = PinSpec()
-        tibia_mesh = load_mesh(tibia, BONE_EXTENT_MM)
-        fibula_mesh = None if fibula is None else load_mesh(fibula, BONE_EXTENT_MM)
+        tibia_mesh = _read_surface(tibia, BONE_EXTENT_MM)
+        fibula_mesh = None if fibula is None else _read_surface(fibula, BONE_EXTENT_MM)
         marks = Landmarks.load(landmarks)
         check_layout(tibia_mesh, fibula_mesh, marks, str(fibula), str(landmarks))
         return Plan(tibia_mesh, fibula_mesh, marks, build_pin(spec), spec, target,
                     segmentation_sd_mm=segmentation_sd_mm)
 
-    def bone_meshes(self) -> list[trimesh.Trimesh]:
+    def bone_meshes(self) -> list[Surface]:
         return [self.tibia] if self.fibula is None else [self.tibia, self.fibula]
 
     def bone_model(self) -> RigidModel:
@@ -209,7 +261,7 @@ class Plan:
     def save(self, folder: Path) -> None:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        self.tibia.export(folder / "tibia.stl")
+        self.tibia.to_trimesh().export(folder / "tibia.stl")
         doc: dict = {
             "format": PLAN_FORMAT,
             "patient_id": self.patient_id,
@@ -225,12 +277,12 @@ class Plan:
             },
         }
         if self.fibula is not None:
-            self.fibula.export(folder / "fibula.stl")
+            self.fibula.to_trimesh().export(folder / "fibula.stl")
             doc["fibula"] = {"file": "fibula.stl", "units": "mm"}
         if self.pin_spec is not None:
             doc["pin"] = {"parametric": self.pin_spec.__dict__}
         else:
-            self.pin_mesh.export(folder / "pin.stl")
+            self.pin_mesh.to_trimesh().export(folder / "pin.stl")
             doc["pin"] = {"file": "pin.stl", "units": "mm"}
         (folder / "plan.json").write_text(json.dumps(doc, indent=2))
         self.folder = folder
@@ -245,20 +297,22 @@ class Plan:
         if doc.get("format") != PLAN_FORMAT:
             raise ValueError(f"{path}: format {doc.get('format')!r} is not {PLAN_FORMAT!r}")
         try:
-            tibia = load_mesh(folder / doc["tibia"]["file"], BONE_EXTENT_MM,
-                              doc["tibia"].get("units", "auto"))
+            cache = folder / "cache"
+            tibia = _read_surface(folder / doc["tibia"]["file"], BONE_EXTENT_MM,
+                                  doc["tibia"].get("units", "auto"), cache_dir=cache)
             fibula = None
             if doc.get("fibula"):
-                fibula = load_mesh(folder / doc["fibula"]["file"], BONE_EXTENT_MM,
-                                   doc["fibula"].get("units", "auto"))
+                fibula = _read_surface(folder / doc["fibula"]["file"], BONE_EXTENT_MM,
+                                       doc["fibula"].get("units", "auto"), cache_dir=cache)
             landmarks = Landmarks.from_json(doc["landmarks"])
             if landmarks.side != doc["side"]:
                 raise ValueError(f"{path}: plan side {doc['side']!r} differs from landmarks")
             pin_doc = doc.get("pin", {"parametric": {}})
             if "file" in pin_doc:
                 pin_spec = None
-                pin_mesh = load_mesh(folder / pin_doc["file"], PIN_EXTENT_MM,
-                                     pin_doc.get("units", "auto"), require_watertight=True)
+                pin_mesh = _read_surface(folder / pin_doc["file"], PIN_EXTENT_MM,
+                                         pin_doc.get("units", "auto"), require_watertight=True,
+                                         cache_dir=cache)
             else:
                 pin_spec = PinSpec(**pin_doc.get("parametric", {}))
                 pin_mesh = build_pin(pin_spec)

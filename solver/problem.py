@@ -8,9 +8,9 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from slamtka.solver.geometry import Pose
+from slamtka.solver.kernels import nearest_points
 from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation
 from slamtka.solver.optimizer import NoiseModel, RobustLoss, Term
 from slamtka.solver.pin_naming import naming_clear, naming_score, swap_pays, swap_pins
@@ -101,12 +101,15 @@ class JointProblem:
         over its visible part) are pruned: a model off its contour says nothing about which
         edges are its own. ``self`` when nothing is dropped."""
         c = self.config
+        reach = c.sampling.foreign_edge_px
+        if reach is None:
+            return self
         views = list(self.views)
         for k, view in enumerate(self.views):
             outlines = {label: self._outline_px(k, label, poses) for label in labels}
             if not any(len(uv) for uv in outlines.values()):
                 continue
-            nearby = cKDTree(np.vstack([uv for uv in outlines.values() if len(uv)]))
+            nearby = np.vstack([uv for uv in outlines.values() if len(uv)])
             kept = {}
             for label in labels:
                 pixels, uv = view.contours[label], outlines[label]
@@ -115,7 +118,10 @@ class JointProblem:
                 if len(pixels) == 0 or len(uv) == 0 or float(np.median(
                         view.distance_map(label).query(uv)[0])) > c.gates.max_coarse_bone_median_px:
                     continue
-                near = nearby.query(pixels)[0] <= c.sampling.foreign_edge_px
+                # Each pixel's distance to its nearest outline pixel (exact, compiled).
+                nearest = nearest_points(nearby, np.ascontiguousarray(pixels, dtype=float), reach)
+                gap = nearby[nearest] - pixels
+                near = np.sqrt(gap[:, 0] ** 2 + gap[:, 1] ** 2) <= reach
                 if not near.all():
                     kept[label] = pixels[near]
             if kept:

@@ -16,8 +16,8 @@ import numpy as np
 from slamtka.solver.anatomy import SIGN_CONVENTION
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.plan import Plan
-from slamtka.solver.sdf import mesh_digest
 from slamtka.solver.slam import SolveOutcome
+from slamtka.solver.surface import mesh_digest
 
 __all__ = ["RESULT_FORMAT", "Angles", "Deviation", "measured_angles", "result_document",
            "software_version"]

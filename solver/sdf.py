@@ -10,24 +10,17 @@ with finite differences).
 
 from __future__ import annotations
 
-import hashlib
-import logging
-import os
-import tempfile
-import zipfile
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-import igl
 import numpy as np
-import trimesh
 
 from slamtka.solver.kernels import trilinear
+from slamtka.solver.plan_cache import cache_key, read_arrays, write_arrays
+from slamtka.solver.surface import Surface, mesh_digest
 
-__all__ = ["SignedDistanceField", "mesh_digest", "write_arrays", "UNREADABLE_CACHE", "MAX_GRID_VOXELS"]
-
-log = logging.getLogger(__name__)
+__all__ = ["SignedDistanceField", "MAX_GRID_VOXELS"]
 
 # Bump when the sampling scheme changes so stale caches are not reused.
 _CACHE_VERSION = 1
@@ -41,25 +34,17 @@ _COARSE_FACTOR = 4
 # apart or in the wrong units.
 MAX_GRID_VOXELS = 12_000_000
 # Grid points sampled at once while building: bounds the build's peak memory (libigl's
-# outputs take about 300 bytes per point) to some 80 MB over the grid itself.
-_SLAB_POINTS = 262_144
-# What reading a damaged or truncated cache entry raises.
-UNREADABLE_CACHE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
-
-
-def mesh_digest(meshes: list[trimesh.Trimesh]) -> str:
-    """sha256 over the vertices and faces of ``meshes`` (in order)."""
-    h = hashlib.sha256()
-    for mesh in meshes:
-        h.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-        h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
-    return h.hexdigest()
+# outputs take about 300 bytes per point) to some 40 MB over the grid itself; the values
+# do not depend on it.
+_SLAB_POINTS = 131_072
 
 
 def _exact_signed_distance(
-    points: np.ndarray, meshes: list[trimesh.Trimesh], band_mm: float | None
+    points: np.ndarray, meshes: Sequence[Surface], band_mm: float | None
 ) -> np.ndarray:
     """Signed distance (negative inside) to the union of ``meshes``; NaN beyond ``band_mm``."""
+    import igl  # with scipy.sparse, ~25 MB: only building a field needs it, never a solve
+
     result = np.full(len(points), np.inf)
     bound = np.inf if band_mm is None else band_mm
     for mesh in meshes:
@@ -84,24 +69,6 @@ def _exact_signed_distance(
     return result
 
 
-def write_arrays(path: Path, **arrays: Any) -> None:
-    """Write ``arrays`` to an ``.npz`` cache entry atomically, so a crash never leaves a
-    truncated entry behind; each writer has its own temporary file, so processes building
-    the same entry at once (parallel test workers, a study's worker pool) cannot move each
-    other's file away. Uncompressed: zlib saved 15% of a distance field's size and cost
-    ~100 ms per load."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=".npz")
-    try:
-        with os.fdopen(fd, "wb") as stream:
-            np.savez(stream, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 @dataclass(frozen=True)
 class SignedDistanceField:
     """A signed distance field on a regular grid: ``values[i, j, k]`` at ``origin + spacing*(i, j, k)``."""
@@ -113,7 +80,7 @@ class SignedDistanceField:
 
     @staticmethod
     def build(
-        meshes: list[trimesh.Trimesh], spacing_mm: float, margin_mm: float
+        meshes: Sequence[Surface], spacing_mm: float, margin_mm: float
     ) -> SignedDistanceField:
         """Sample the field of the union of ``meshes`` over their bounds plus ``margin_mm``.
 
@@ -137,7 +104,7 @@ class SignedDistanceField:
         return SignedDistanceField(lo, spacing_mm, fine.values, mesh_digest(meshes))
 
     @staticmethod
-    def _sample(meshes: list[trimesh.Trimesh], origin: np.ndarray, spacing: float,
+    def _sample(meshes: Sequence[Surface], origin: np.ndarray, spacing: float,
                 shape: np.ndarray, band_mm: float | None,
                 far_field: SignedDistanceField | None = None) -> SignedDistanceField:
         """Exact distances on the grid, slab by slab; beyond ``band_mm`` NaN, or the value
@@ -157,21 +124,15 @@ class SignedDistanceField:
 
     @staticmethod
     def cached(
-        meshes: list[trimesh.Trimesh], spacing_mm: float, margin_mm: float, cache_dir: Path | None
+        meshes: Sequence[Surface], spacing_mm: float, margin_mm: float, cache_dir: Path | None
     ) -> SignedDistanceField:
         """Load the field from ``cache_dir`` if its key matches, else build and store it."""
         if cache_dir is None:
             return SignedDistanceField.build(meshes, spacing_mm, margin_mm)
-        key = hashlib.sha256(
-            f"{mesh_digest(meshes)}|{spacing_mm}|{margin_mm}|{_CACHE_VERSION}".encode()
-        ).hexdigest()[:24]
-        path = Path(cache_dir) / f"sdf-{key}.npz"
-        if path.exists():
-            try:
-                return SignedDistanceField.load(path)
-            except UNREADABLE_CACHE as exc:
-                # The cache is documented as safe to delete: a damaged entry is rebuilt.
-                log.warning("%s: unreadable cached distance field (%s); rebuilding it", path, exc)
+        path = Path(cache_dir) / f"sdf-{cache_key(mesh_digest(meshes), spacing_mm, margin_mm, _CACHE_VERSION)}.npz"
+        stored = read_arrays(path, "distance field")
+        if stored is not None:
+            return SignedDistanceField._of(stored)
         field = SignedDistanceField.build(meshes, spacing_mm, margin_mm)
         field.save(path)
         return field
@@ -193,8 +154,12 @@ class SignedDistanceField:
     @staticmethod
     def load(path: Path) -> SignedDistanceField:
         with np.load(path) as data:
-            return SignedDistanceField(data["origin"], float(data["spacing"]), data["values"],
-                                       str(data["digest"]))
+            return SignedDistanceField._of(data)
+
+    @staticmethod
+    def _of(arrays: Mapping[str, np.ndarray]) -> SignedDistanceField:
+        return SignedDistanceField(arrays["origin"], float(arrays["spacing"]), arrays["values"],
+                                   str(arrays["digest"]))
 
     def query(self, points: np.ndarray, gradient: bool = True
               ) -> tuple[np.ndarray, np.ndarray | None]:

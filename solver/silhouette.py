@@ -9,23 +9,22 @@ project onto the boundary of the model's projected footprint.
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 from functools import cached_property
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import trimesh
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, box_corners, row_norms
 from slamtka.solver.kernels import footprint_mask, outline_samples
-from slamtka.solver.sdf import UNREADABLE_CACHE, mesh_digest, write_arrays
+
+if TYPE_CHECKING:
+    import trimesh
 
 __all__ = ["ContourGenerator", "INTERIOR_REUSE_PX", "simplified"]
-
-log = logging.getLogger(__name__)
 
 # Projected footprints are rasterised at 1/_MASK_DOWNSCALE resolution.
 _MASK_DOWNSCALE = 4
@@ -34,25 +33,11 @@ _MASK_DOWNSCALE = 4
 INTERIOR_REUSE_PX = _MASK_DOWNSCALE / 2
 
 
-def simplified(mesh: trimesh.Trimesh, max_faces: int, cache_dir: Path | None) -> trimesh.Trimesh:
-    """``mesh`` decimated to at most ``max_faces`` faces (itself when it has no more),
-    cached in ``cache_dir`` keyed by its hash: decimating a bone takes ~70 ms, which a
-    plan's load in the operating room should not pay."""
+def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """``mesh`` decimated to at most ``max_faces`` faces (itself when it has no more)."""
     if len(mesh.faces) <= max_faces:
         return mesh
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"simplified-{mesh_digest([mesh])[:24]}-{max_faces}.npz"
-        if path.exists():
-            try:
-                with np.load(path) as data:
-                    return trimesh.Trimesh(data["vertices"], data["faces"], process=False)
-            except UNREADABLE_CACHE as exc:
-                log.warning("%s: unreadable cached mesh (%s); simplifying again", path, exc)
-    light = mesh.simplify_quadric_decimation(face_count=max_faces)
-    if path is not None:
-        write_arrays(path, vertices=np.asarray(light.vertices), faces=np.asarray(light.faces))
-    return light
+    return mesh.simplify_quadric_decimation(face_count=max_faces)
 
 
 @dataclass(frozen=True)
@@ -93,6 +78,15 @@ class ContourGenerator:
             open_edges=directed[is_open],
             open_edge_faces=np.repeat(np.arange(len(faces)), 3)[is_open],
         )
+
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The topology as named arrays (each name prefixed), to store it with a plan."""
+        return {prefix + f.name: getattr(self, f.name) for f in fields(self)}
+
+    @staticmethod
+    def from_arrays(arrays: Mapping[str, np.ndarray], prefix: str) -> ContourGenerator:
+        """The topology stored by :meth:`arrays` under ``prefix``."""
+        return ContourGenerator(**{f.name: arrays[prefix + f.name] for f in fields(ContourGenerator)})
 
     @cached_property
     def _face_offsets(self) -> np.ndarray:

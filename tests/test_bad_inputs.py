@@ -172,7 +172,7 @@ def test_binary_landmarks_are_named_by_plan_add(tmp_path, capsys):
     binary = tmp_path / "landmarks.json"
     binary.write_bytes(b"\xff\xfe\x00junk")
     tibia = tmp_path / "tibia.stl"
-    phantom_plan().tibia.export(tibia)
+    phantom_plan().tibia.to_trimesh().export(tibia)
     assert main(["plan", "add", "--plans", str(tmp_path / "plans"), "--patient-id", "P1",
                  "--side", "right", "--tibia", str(tibia), "--landmarks", str(binary)]) == 2
     assert f"{binary}: not a text (UTF-8) file" in capsys.readouterr().err

@@ -66,6 +66,16 @@ def test_the_command_list_and_the_health_check_load_nothing_heavy():
                               "build_parser('status')") == []
 
 
+def test_the_health_check_runs_without_the_solver_or_the_dicom_stack(tmp_path):
+    """Parsing is not all: ``slamtka status`` reads the configuration and the status file
+    (the C-arm section's drivers, with numpy, are the service's to check at its start)."""
+    config = tmp_path / "slamtka.toml"
+    config.write_text(f'data_dir = "{tmp_path}"\n[dicom]\nallowed_calling_ae_titles = ["CARM"]\n')
+    loaded = _modules_loaded_by("from slamtka.service.cli import main\n"
+                                f"assert main(['status', '--config', {str(config)!r}]) == 1")
+    assert loaded == []
+
+
 @pytest.mark.parametrize("name", sorted(COMMANDS))
 def test_each_command_registers_itself_under_its_listed_help(name):
     parser = build_parser(name)

@@ -10,11 +10,12 @@ from conftest import SHARED_DATA
 from slamtka.solver.meshes import MeshError, load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.sdf import SignedDistanceField
+from slamtka.solver.surface import Surface
 
 
 def test_pin_is_a_closed_trocar_of_the_right_size():
     pin = build_pin(PinSpec(length_mm=80.0))
-    assert pin.is_watertight and pin.volume > 0
+    assert pin.to_trimesh().is_watertight and pin.to_trimesh().volume > 0
     assert np.allclose(pin.bounds, [[-1.6, -1.6, 0.0], [1.6, 1.6, 80.0]], atol=1e-6)
     tip = pin.vertices[pin.vertices[:, 2] < 5.0]
     # Three facets: the tip cross-section at mid height is a rounded triangle, not a circle.
@@ -155,22 +156,38 @@ def test_sdf_is_built_in_bounded_slabs_with_the_same_values(monkeypatch):
     np.testing.assert_allclose(slabbed.values, whole.values, atol=1e-5)
 
 
-def test_simplified_silhouette_mesh_is_cached_beside_the_plan(tmp_path, monkeypatch):
-    """A plan's load in the operating room reads its simplified meshes, never decimates."""
-    from slamtka.solver.silhouette import simplified
+@pytest.mark.parametrize("spec", [PinSpec(), PinSpec(2.0, 60.0, 3.0), PinSpec(6.0, 250.0, 20.0)])
+def test_the_pin_is_built_as_trimesh_would_process_it(spec):
+    """The pin's arrays are built without trimesh (a solve never imports it): they are
+    already what trimesh's processing (merging, removing degenerate faces) would leave."""
+    pin = build_pin(spec)
+    processed = trimesh.Trimesh(pin.vertices, pin.faces, process=True)
+    assert np.array_equal(processed.vertices, pin.vertices) and np.array_equal(processed.faces, pin.faces)
+    assert processed.is_watertight and processed.volume > 0
 
-    sphere = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
-    light = simplified(sphere, 1000, tmp_path)
-    assert len(light.faces) <= 1000 and len(list(tmp_path.glob("simplified-*.npz"))) == 1
+
+def test_silhouette_topology_is_stored_beside_the_plan(tmp_path, monkeypatch):
+    """A plan's load in the operating room reads its silhouette topology, never decimates
+    or looks for each edge's faces."""
+    from slamtka.solver.plan import RigidModel
+    from slamtka.solver.silhouette import ContourGenerator, simplified
+
+    sphere = Surface.of(trimesh.creation.icosphere(subdivisions=6, radius=20.0))  # 81920 faces
+    model = RigidModel.build("ball", [sphere], 2.0, tmp_path)
+    assert len(model.contour.faces) <= 6000 and len(model.coarse_contour.faces) <= 1500
+    assert len(list(tmp_path.glob("silhouettes-*.npz"))) == 1
+    fine = simplified(sphere.to_trimesh(), 6000)
+    expected = ContourGenerator.from_mesh(fine), ContourGenerator.from_mesh(simplified(fine, 1500))
 
     def refuse(*args, **kwargs):
-        raise AssertionError("decimated again although the plan's cache holds the mesh")
+        raise AssertionError("built again although the plan's cache holds it")
 
     monkeypatch.setattr(trimesh.Trimesh, "simplify_quadric_decimation", refuse)
-    again = simplified(sphere, 1000, tmp_path)
-    np.testing.assert_array_equal(again.faces, light.faces)
-    np.testing.assert_allclose(again.vertices, light.vertices)
-    assert simplified(sphere, 6000, tmp_path) is sphere  # small enough already
+    monkeypatch.setattr(ContourGenerator, "from_mesh", refuse)
+    again = RigidModel.build("ball", [sphere], 2.0, tmp_path)
+    for stored, built in zip((again.contour, again.coarse_contour), expected):
+        for name, array in built.arrays("").items():
+            np.testing.assert_array_equal(getattr(stored, name), array)
 
 
 def test_sdf_query_matches_the_trilinear_interpolant_inside_and_beyond_the_grid():

@@ -16,6 +16,7 @@ from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.meshes import MeshError, load_mesh
 from slamtka.solver.plan import BONE_EXTENT_MM, Plan, Target
 from slamtka.solver.sdf import SignedDistanceField
+from slamtka.solver.surface import Surface
 
 KNEE, ANKLE = [0.0, 0.0, 180.0], [0.0, 0.0, -180.0]
 
@@ -168,7 +169,7 @@ def test_landmarks_far_from_the_tibia_are_refused(bones, tmp_path, capsys):
 # 8. a damaged cached distance field is rebuilt
 @pytest.mark.parametrize("damage", [lambda b: b[: len(b) // 2], lambda b: b""])
 def test_an_unreadable_cached_field_is_rebuilt(tmp_path, caplog, damage):
-    meshes = [trimesh.creation.icosphere(subdivisions=1, radius=5.0)]
+    meshes = [Surface.of(trimesh.creation.icosphere(subdivisions=1, radius=5.0))]
     fresh = SignedDistanceField.cached(meshes, 2.0, 20.0, tmp_path)
     (path,) = tmp_path.glob("sdf-*.npz")
     path.write_bytes(damage(path.read_bytes()))

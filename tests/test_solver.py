@@ -637,7 +637,7 @@ def test_segmentation_error_is_a_smooth_displacement_of_the_stated_size(phantom_
 
     from slamtka.sim.simulate import segmentation_error
 
-    bone = trimesh.util.concatenate(phantom_plan.bone_meshes())
+    bone = trimesh.util.concatenate([m.to_trimesh() for m in phantom_plan.bone_meshes()])
     moved = segmentation_error(bone, 0.5, np.random.default_rng(7))
     displacement = np.einsum("ij,ij->i", moved.vertices - bone.vertices, bone.vertex_normals)
     assert 0.35 < displacement.std() < 0.65 and abs(displacement.mean()) < 0.2

@@ -34,6 +34,7 @@ from scipy.interpolate import PchipInterpolator
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.plan import Plan, Target
+from slamtka.solver.surface import Surface
 
 __all__ = ["PhantomBone", "build_phantom", "phantom_plan", "MIN_LENGTH_MM", "MAX_LENGTH_MM"]
 
@@ -687,6 +688,6 @@ def phantom_plan(side: str = "right", target: Target = Target()) -> Plan:
     bone = build_phantom(side)
     landmarks = Landmarks(bone.knee_centre, bone.ankle_centre, bone.anterior, side)
     spec = PinSpec()
-    return Plan(bone.tibia, bone.fibula, landmarks, build_pin(spec), spec, target, "PHANTOM",
-                segmentation_sd_mm=0.0)
+    return Plan(Surface.of(bone.tibia), Surface.of(bone.fibula), landmarks, build_pin(spec), spec,
+                target, "PHANTOM", segmentation_sd_mm=0.0)
 

@@ -176,13 +176,13 @@ def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> 
     camera = default_camera()
     pins, ctr_deg, str_deg = _place_pins(plan, rng)
     views_true = _view_poses(plan, config.view_angles_deg, rng)
-    bone = trimesh.util.concatenate(plan.bone_meshes())
+    bone = trimesh.util.concatenate([m.to_trimesh() for m in plan.bone_meshes()])
     if config.segmentation_sd_mm > 0:
         # Its own random stream, so the truth (pins, views) stays that of the same seed.
         bone = segmentation_error(bone, config.segmentation_sd_mm,
                                   np.random.default_rng([config.seed, 1]))
     bone_full = ContourGenerator.from_mesh(bone)
-    pin_full = ContourGenerator.from_mesh(plan.pin_mesh)
+    pin_full = ContourGenerator.from_mesh(plan.pin_mesh.to_trimesh())
     views = []
     for k, T_cam_tibia in enumerate(views_true):
         contours = {"bone": _observe(bone_full, T_cam_tibia, camera, True, config, rng)}

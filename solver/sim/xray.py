@@ -161,7 +161,8 @@ class XRayScene:
     def from_plan(plan: Plan, params: XRayParams = XRayParams()) -> XRayScene:
         soft = params.mu_soft_per_mm
         bone = []
-        for name, mesh in zip(("tibia", "fibula"), plan.bone_meshes()):
+        bone_meshes = [m.to_trimesh() for m in plan.bone_meshes()]
+        for name, mesh in zip(("tibia", "fibula"), bone_meshes):
             mesh = _closed(mesh, name)
             bone.append(Body(mesh.vertices, mesh.faces, params.mu_cortical_per_mm - soft))
             if params.cortical_thickness_mm > 0:
@@ -170,12 +171,12 @@ class XRayScene:
                                  params.mu_cancellous_per_mm - params.mu_cortical_per_mm))
         envelope = _envelope(params)
         anatomy = [Body(envelope.vertices, envelope.faces, soft, smooth=True)]
-        pin = _closed(plan.pin_mesh, "pin")
+        pin = _closed(plan.pin_mesh.to_trimesh(), "pin")
         return XRayScene(
             params, bone, anatomy, Body(pin.vertices, pin.faces, params.mu_steel_per_mm - soft),
             plan.landmarks.T_tibia_anat(),
-            ContourGenerator.from_mesh(trimesh.util.concatenate(plan.bone_meshes())),
-            ContourGenerator.from_mesh(plan.pin_mesh))
+            ContourGenerator.from_mesh(trimesh.util.concatenate(bone_meshes)),
+            ContourGenerator.from_mesh(pin))
 
 
 @dataclass
