@@ -259,10 +259,11 @@ class Pipeline:
         if uid not in self._extracted:
             try:
                 calibration = self._calibrated()
-                centres, width = plan.pin_shadows(calibration.camera, T_cam_tibia, pins)
+                shadows = plan.pin_shadows(calibration.camera, T_cam_tibia, pins)
                 found = extract_contours(frame.pixels,
-                                         expected_pins=calibration.distort_points(centres),
-                                         expected_pin_width_px=width)
+                                         expected_pins=calibration.distort_points(shadows.centres),
+                                         expected_pin_width_px=shadows.width_px,
+                                         expected_pin_length_px=shadows.length_px)
                 self._extracted[uid] = (found, "extracted")
             except ContourError as exc:
                 self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")

@@ -27,6 +27,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -179,6 +180,15 @@ class RigidModel:
         return RigidModel(name, meshes, sdf, *_silhouettes(meshes, cache_dir))
 
 
+class PinShadows(NamedTuple):
+    """Where a plan's pins show in a view at a pose: their centres' pixels (2, 2), and the
+    width and length (px) of one pin's shadow, which tell pins from other straight metal."""
+
+    centres: np.ndarray
+    width_px: float
+    length_px: float
+
+
 @dataclass
 class Plan:
     """Everything known before surgery about one patient's tibia and the pins."""
@@ -249,13 +259,15 @@ class Plan:
         return 2.0 * float(np.percentile(radial, 75))
 
     def pin_shadows(self, camera: Camera, T_cam_tibia: Pose, T_tibia_pins: Sequence[Pose]
-                    ) -> tuple[np.ndarray, float]:
-        """Where the pins at ``T_tibia_pins`` show in a view: their centres' ideal
-        (undistorted) pixels (2, 2) and the width of a pin's shadow there, px."""
-        half = np.array([[0.0, 0.0, 0.5 * self.pin_length()]])
-        centres = np.array([(T_cam_tibia @ T).apply(half)[0] for T in T_tibia_pins])
-        width = camera.fx * self.pin_diameter() / float(np.mean(centres[:, 2]))
-        return camera.project(centres), width
+                    ) -> PinShadows:
+        """Where the pins at ``T_tibia_pins`` show in a view (ideal, undistorted pixels)."""
+        lo, hi = self.pin_mesh.bounds[:, 2]
+        axis = np.array([[0.0, 0.0, 0.5 * self.pin_length()], [0.0, 0.0, lo], [0.0, 0.0, hi]])
+        points = np.array([(T_cam_tibia @ T).apply(axis) for T in T_tibia_pins])  # (pins, 3, 3)
+        width = camera.fx * self.pin_diameter() / float(np.mean(points[:, 0, 2]))
+        ends = camera.project(points[:, 1:].reshape(-1, 3)).reshape(-1, 2, 2)
+        length = float(np.mean(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)))
+        return PinShadows(camera.project(points[:, 0]), width, length)
 
     # -- persistence ---------------------------------------------------------------------
     def save(self, folder: Path) -> None:

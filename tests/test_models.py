@@ -7,6 +7,8 @@ import pytest
 import trimesh
 from conftest import SHARED_DATA
 
+from slamtka.sim.simulate import default_camera
+from slamtka.solver.geometry import Pose
 from slamtka.solver.meshes import MeshError, load_mesh
 from slamtka.solver.pin import PinSpec, build_pin
 from slamtka.solver.sdf import SignedDistanceField
@@ -23,6 +25,20 @@ def test_pin_is_a_closed_trocar_of_the_right_size():
     assert len(ring) > 0
     with pytest.raises(ValueError):
         PinSpec(diameter_mm=40.0)
+
+
+def test_pin_shadows_are_as_wide_and_long_as_the_pin_projected(phantom_plan):
+    """Pins across the beam at 500 mm: a shadow fx * d / z wide and fx * L / z long; the
+    same pins along the beam: end-on, a shadow no longer than it is wide."""
+    camera, length = default_camera(), phantom_plan.pin_length()
+    across = Pose(np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+                  [-0.5 * length, 0.0, 500.0])
+    shadows = phantom_plan.pin_shadows(camera, Pose.identity(), [across, across])
+    assert shadows.width_px == pytest.approx(camera.fx * phantom_plan.pin_diameter() / 500.0)
+    assert shadows.length_px == pytest.approx(camera.fx * length / 500.0, rel=1e-6)
+    along = Pose(np.eye(3), [0.0, 0.0, 500.0 - 0.5 * length])
+    end_on = phantom_plan.pin_shadows(camera, Pose.identity(), [along, along])
+    assert end_on.length_px < end_on.width_px
 
 
 def test_sdf_matches_exact_distance_and_its_gradient(tmp_path):

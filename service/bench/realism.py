@@ -44,7 +44,7 @@ from slamtka.sim.operating_room import (
 from slamtka.sim.simulate import SimulationConfig, SimulationError, default_camera, simulate_case
 from slamtka.sim.xray import XRayParams, XRayScene
 from slamtka.solver.imaging.contours import ContourError, ExtractedContours, extract_contours
-from slamtka.solver.plan import Plan
+from slamtka.solver.plan import PinShadows, Plan
 from slamtka.solver.slam import SolverConfig, solve_joint
 
 __all__ = ["add_realism_bench_parser", "run_realism", "realism_case", "SHARED_DATA"]
@@ -83,11 +83,12 @@ def _room(scene: str, data: Path) -> OperatingRoom:
     return OperatingRoom.only(scene, meshes)
 
 
-def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> tuple[np.ndarray, float]:
-    """Pin centres and shadow width at the initial poses (what the service labels pins by)."""
-    centres, width = plan.pin_shadows(frame.radiograph.camera, case.initial.T_cam_tibia[k],
-                                      case.initial.T_tibia_pin)
-    return frame.radiograph.distortion.distort(centres), width
+def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> PinShadows:
+    """The pins' shadows at the initial poses (what the service labels pins by), with their
+    centres distorted as the frame is."""
+    shadows = plan.pin_shadows(frame.radiograph.camera, case.initial.T_cam_tibia[k],
+                               case.initial.T_tibia_pin)
+    return shadows._replace(centres=frame.radiograph.distortion.distort(shadows.centres))
 
 
 def _scores(frame: RoomFrame, found: ExtractedContours) -> dict:
@@ -147,11 +148,12 @@ def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
     for level, case in cases.items():
         views, refusal = [], None
         for k, frame in enumerate(frames):
-            centres, width = _expected_pins(case, k, frame, plan)
+            shadows = _expected_pins(case, k, frame, plan)
             start = time.perf_counter()
             try:
-                found = extract_contours(frame.radiograph.image, expected_pins=centres,
-                                         expected_pin_width_px=width)
+                found = extract_contours(frame.radiograph.image, expected_pins=shadows.centres,
+                                         expected_pin_width_px=shadows.width_px,
+                                         expected_pin_length_px=shadows.length_px)
             except ContourError as exc:
                 refusal = refusal or f"view {k + 1}: {exc}"
                 found = None

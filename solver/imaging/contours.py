@@ -375,16 +375,21 @@ def _robust_width(bar: _Bar, points: np.ndarray) -> float:
 
 
 def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
-                   expected: np.ndarray | None = None) -> tuple[int, int] | None:
+                   expected: np.ndarray | None = None, least_length: float = 0.0
+                   ) -> tuple[int, int] | None:
     """The two shadows most alike in direction and width (the block's parallel pins), or
     None when no two are alike enough to be the pins. With ``expected`` pin centres (the
     initial pose's projection), a pair far from them costs more: a retractor blade seen
-    edge-on is as straight as a pin, but not where the plan puts the pins."""
+    edge-on is as straight as a pin, but not where the plan puts the pins. Shadows shorter
+    than ``least_length`` are no pin's (a bent blade's fold is as wide, but short)."""
     best, best_cost = None, np.inf
     widths_px = [_robust_width(bar, points) for bar, points in fitted]
+    long = [2.0 * bar.half_length >= least_length for bar, _ in fitted]
     where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
+            if not (long[i] and long[j]):
+                continue
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
             angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
             ratio = max(widths_px[i], widths_px[j]) / max(min(widths_px[i], widths_px[j]), 1e-9)
@@ -428,6 +433,11 @@ def _order_pins(bars: list[_Bar], config: ContourConfig, expected: np.ndarray | 
 
 
 _MIN_PIN_EDGES = 20  # fewer edge points than this are no pin shadow
+# The plan's pin projected at the initial pose gives its shadow's length only roughly (at a
+# level-1 pose 0.57-2.2 times the true one: the foreshortening of a pin at a steep angle
+# changes fast with the pose); a shadow shorter than this share of it is not a pin (a bent
+# blade's fold seen obliquely is as wide as a pin and as straight, but 0.17-0.32 of it).
+_PIN_LENGTH_SHARE = 0.4
 # A pin's shadow (or two overlapping along their axis) is a straight bar: this much longer
 # than wide, filling this share of its rectangle. Retractor blades, collimator blades,
 # lead letters and a femur's end-on shaft are wider, shorter or not straight.
@@ -590,19 +600,18 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
     return np.where(beside, opened, median)
 
 
-_SPLIT_TRIED = 3  # largest shadows tried, in turn, as the one holding both pins
-
-
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
                widths: _PinWidths, config: ContourConfig
                ) -> tuple[list[_Bar], str, np.ndarray] | None:
-    """When no two shadows are the pins, the one that holds both: of the largest, the first
-    that splits into two bars no wider than a pin on average (a strip of a retractor blade
-    does not; a split's bars come out uneven where pin heads add steps to its sides), with
-    its bars, how they overlap and its edge points; None if none does."""
+    """When no two shadows are the pins, the one that holds both: of the candidates, largest
+    first, the first that splits into two bars no wider than a pin on average (a strip of a
+    retractor blade does not; a split's bars come out uneven where pin heads add steps to
+    its sides), with its bars, how they overlap and its edge points; None if none does.
+    All are tried: two pins in line across three blades are a smaller shadow than the
+    blades' strips (retractors seed 22, view 2)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
-    for shadow in shadows[:_SPLIT_TRIED]:
+    for shadow in shadows:
         own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
@@ -623,8 +632,8 @@ def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
 
 
 def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourConfig,
-          expected: np.ndarray | None, expected_width_px: float | None
-          ) -> tuple[list[np.ndarray], np.ndarray, dict]:
+          expected: np.ndarray | None, expected_width_px: float | None,
+          expected_length_px: float | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
     widths = _PinWidths.of(config, expected_width_px)
     background = _below_pins(A, broad, config)
@@ -666,7 +675,8 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     pixels = np.column_stack([xs, ys]).astype(float)
     shadows = np.argsort(kept)[::-1][:min(np.count_nonzero(kept), _PIN_CANDIDATES)]
     fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
-    pair = _parallel_pair(fitted, widths, expected)
+    least_length = 0.0 if expected_length_px is None else _PIN_LENGTH_SHARE * expected_length_px
+    pair = _parallel_pair(fitted, widths, expected, least_length)
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
@@ -837,6 +847,14 @@ def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np
     return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
 
 
+def _border(broad: np.ndarray) -> np.ndarray:
+    """The rim of broad metal. A pin's edges over a face-on blade are placed as over
+    tissue (2 mm of steel passes quanta, and the pin's background there is the blade): a
+    pin across blades kept a third of its edges (retractors seeds 1, 10, 22: pins 5-6 deg
+    from parallel). Only at the rim, where the background steps, are they left out."""
+    return broad & ~(cv2.erode(broad.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+
+
 def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     h, w = allowed.shape
     pix = np.round(points).astype(int)
@@ -855,7 +873,8 @@ UNFORESEEN_PREFIX = "contour extraction failed unexpectedly"
 
 def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig(),
                      expected_pins: np.ndarray | None = None,
-                     expected_pin_width_px: float | None = None) -> ExtractedContours:
+                     expected_pin_width_px: float | None = None,
+                     expected_pin_length_px: float | None = None) -> ExtractedContours:
     """Bone and pin edge pixels of one frame, in raw (distorted) pixel coordinates.
 
     ``expected_pins``: optional (2, 2) projected centres of pin 1 and pin 2 (e.g. from the
@@ -868,7 +887,7 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     if expected_pin_width_px is not None and not expected_pin_width_px > 0:
         raise ValueError(f"expected_pin_width_px must be positive, got {expected_pin_width_px}")
     try:
-        return _extract(pixels, config, expected_pins, expected_pin_width_px)
+        return _extract(pixels, config, expected_pins, expected_pin_width_px, expected_pin_length_px)
     except ContourError:
         raise
     except FieldError as exc:
@@ -878,7 +897,8 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
 
 
 def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None,
-             expected_pin_width_px: float | None) -> ExtractedContours:
+             expected_pin_width_px: float | None, expected_pin_length_px: float | None
+             ) -> ExtractedContours:
     start = time.perf_counter()
     image = np.asarray(pixels)
     if image.ndim != 2 or min(image.shape) < 64:
@@ -924,21 +944,19 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     to_air = _distance_to(air)
 
     (pin1, pin2), pins, pin_info = _pins(A_field, field, broad & field, config, expected_pins,
-                                         expected_pin_width_px)
+                                         expected_pin_width_px, expected_pin_length_px)
     bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
     margin = config.fov_margin_px
     rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
-    # A pin is found across broad metal, but its edges there are not placed: behind a
-    # collimator blade too few quanta pass to place one (shutters seed 19: a pin's edges
-    # 1 px off and an angle 1.1 deg off, where they had been left out).
+    pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
     rim_ok &= _distance_to(broad) > margin
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
     bone = _keep(bone, bone_visible & (to_air > 3.0))
-    pin1, pin2 = _keep(pin1, rim_ok), _keep(pin2, rim_ok)
+    pin1, pin2 = _keep(pin1, pins_ok), _keep(pin2, pins_ok)
     missing = {label: _why_missing(k, expected_pins, broad)
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
