@@ -759,7 +759,17 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     excess = smooth - _tissue_surface(smooth, tissue & ~skin if (tissue & ~skin).any() else tissue, config)
     sizes = np.bincount(labels.ravel(), minlength=count)
     level = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
-    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (level < config.bone_threshold)
+    # A region cut off from the skin is tissue when its level over that surface is tissue's.
+    # Or, where that surface is extrapolated too far to say: below every bone around it, no
+    # higher than most tissue by the skin (a bone's marrow, also below its cortex, is) and
+    # wide (the gap between tibia and fibula, whose edges the model's outer outline does not
+    # follow, is left to the level).
+    raw_level = np.bincount(labels.ravel(), weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
+    tissue_top = float(np.percentile(smooth[tissue][::7], _TISSUE_TOP_PERCENTILE))
+    cut_off = ((_share_below_surroundings(labels, count, barrier, smooth, grad, config.bone_threshold)
+                >= _LOWER_SHARE) & (raw_level <= tissue_top) & (sizes >= _CUT_OFF_AREA * config.min_bone_area_px))
+    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (
+        (level < config.bone_threshold) | cut_off)
     enclosed_tissue[0] = False
     tissue |= enclosed_tissue[labels]
     bone = valid & ~air & ~tissue
@@ -788,6 +798,53 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     return edges, {"bone_mask_area_px": int(bone.sum()), "bone_candidates": len(points),
                    "edge_blur_sigma_px": sigma,
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
+
+
+def _share_below_surroundings(labels: np.ndarray, count: int, barrier: np.ndarray, smooth: np.ndarray,
+                              grad: tuple[np.ndarray, np.ndarray], step: float) -> np.ndarray:
+    """Per component, the share of the edges around it (weighted by their strength) across
+    which the attenuation rises away from it by at least ``step``.
+
+    Soft tissue cut off from the skin by bones (beside the fibula when a femur closes the
+    joint space above it and no air shows beyond) lies below everything around it, as the
+    gap between tibia and fibula does; a bone region rises above its surroundings at its
+    outline. Its level against the tissue surface cannot tell them apart there: that surface
+    is fitted to the tissue by the skin, and across a wide leg the tissue thickens by more
+    than a bone adds."""
+    gx, gy = grad
+    v, u = np.nonzero(barrier)
+    magnitude = np.hypot(gx[v, u], gy[v, u])
+    ok = magnitude > 0
+    v, u, magnitude = v[ok], u[ok], magnitude[ok]
+    du, dv = gx[v, u] / magnitude, gy[v, u] / magnitude
+    h, w = labels.shape
+
+    def side(sign: float) -> tuple[np.ndarray, np.ndarray]:
+        """The first region met walking from each edge pixel along (or against) the
+        gradient, and the attenuation where it was met."""
+        found, level = np.zeros(len(v), labels.dtype), np.zeros(len(v), np.float32)
+        for reach in _EDGE_SIDE_PX:
+            rows = np.clip(np.rint(v + sign * reach * dv).astype(int), 0, h - 1)
+            cols = np.clip(np.rint(u + sign * reach * du).astype(int), 0, w - 1)
+            new = found == 0
+            found = np.where(new, labels[rows, cols], found)
+            level = np.where(new, smooth[rows, cols], level)
+        return found, level
+
+    (lower, low), (upper, high) = side(-1.0), side(1.0)
+    # Only edges with a region on both sides say which is the lower (a narrow region's far
+    # side would otherwise go uncounted), and only steps as large as a bone makes (weaker
+    # ones are noise or texture within a bone).
+    both = (lower > 0) & (upper > 0) & (lower != upper) & (high - low >= step)
+    below = np.bincount(lower[both], weights=magnitude[both], minlength=count)
+    above = np.bincount(upper[both], weights=magnitude[both], minlength=count)
+    return below / np.maximum(below + above, 1e-12)
+
+
+_EDGE_SIDE_PX = (2.0, 4.0, 6.0, 9.0)  # steps from an edge pixel, along the gradient, to the regions it parts
+_LOWER_SHARE = 0.8  # of its edges' strength: a region this much below its surroundings is tissue
+_CUT_OFF_AREA = 10  # bone areas: cut-off tissue this large is not a gap between bones
+_TISSUE_TOP_PERCENTILE = 95.0  # of the skin's tissue: the highest level cut-off tissue may have
 
 
 def _smoothing_for_noise(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> float:
