@@ -765,7 +765,9 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     # wide (the gap between tibia and fibula, whose edges the model's outer outline does not
     # follow, is left to the level).
     raw_level = np.bincount(labels.ravel(), weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
-    tissue_top = float(np.percentile(smooth[tissue][::7], _TISSUE_TOP_PERCENTILE))
+    skin_tissue = smooth[tissue][::7]
+    tissue_top = min(float(np.percentile(skin_tissue, _TISSUE_TOP_PERCENTILE)),
+                     float(np.median(skin_tissue)) + _CUT_OFF_EXCESS * config.bone_threshold)
     cut_off = ((_share_below_surroundings(labels, count, barrier, smooth, grad, config.bone_threshold)
                 >= _LOWER_SHARE) & (raw_level <= tissue_top) & (sizes >= _CUT_OFF_AREA * config.min_bone_area_px))
     enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (
@@ -844,7 +846,12 @@ def _share_below_surroundings(labels: np.ndarray, count: int, barrier: np.ndarra
 _EDGE_SIDE_PX = (2.0, 4.0, 6.0, 9.0)  # steps from an edge pixel, along the gradient, to the regions it parts
 _LOWER_SHARE = 0.8  # of its edges' strength: a region this much below its surroundings is tissue
 _CUT_OFF_AREA = 10  # bone areas: cut-off tissue this large is not a gap between bones
-_TISSUE_TOP_PERCENTILE = 95.0  # of the skin's tissue: the highest level cut-off tissue may have
+# The highest level cut-off tissue may have: the skin's tissue's 95th percentile, and at most
+# this many bone thresholds over its median (where the skin's "tissue" holds a collimator
+# blade's penumbra, its upper percentiles are the blade's); a tibia's interior, below its
+# cortex, lies 3.5-8 thresholds over the median, cut-off tissue up to 2.8 (measured).
+_TISSUE_TOP_PERCENTILE = 95.0
+_CUT_OFF_EXCESS = 3.0
 
 
 def _smoothing_for_noise(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> float:
