@@ -760,19 +760,23 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     sizes = np.bincount(labels.ravel(), minlength=count)
     level = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
     # A region cut off from the skin is tissue when its level over that surface is tissue's.
-    # Or, where that surface is extrapolated too far to say: below every bone around it, no
-    # higher than most tissue by the skin (a bone's marrow, also below its cortex, is) and
-    # wide (the gap between tibia and fibula, whose edges the model's outer outline does not
-    # follow, is left to the level).
+    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (level < config.bone_threshold)
+    enclosed_tissue[0] = False
+    # Or, where that surface is extrapolated too far to say: when it is wide (the gap between
+    # tibia and fibula, whose edges the model's outer outline does not follow, is left to the
+    # level), no higher than the tissue by the skin (a tibia's interior is) and below every
+    # bone around it. The last, costliest test only where the others leave a region.
     raw_level = np.bincount(labels.ravel(), weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
     skin_tissue = smooth[tissue][::7]
     tissue_top = min(float(np.percentile(skin_tissue, _TISSUE_TOP_PERCENTILE)),
                      float(np.median(skin_tissue)) + _CUT_OFF_EXCESS * config.bone_threshold)
-    cut_off = ((_share_below_surroundings(labels, count, barrier, smooth, grad, config.bone_threshold)
-                >= _LOWER_SHARE) & (raw_level <= tissue_top) & (sizes >= _CUT_OFF_AREA * config.min_bone_area_px))
-    enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (
-        (level < config.bone_threshold) | cut_off)
-    enclosed_tissue[0] = False
+    cut_off = ~seeded & ~enclosed_tissue & (sizes >= _CUT_OFF_AREA * config.min_bone_area_px) & (
+        raw_level <= tissue_top)
+    cut_off[0] = False
+    if cut_off.any():
+        cut_off &= _share_below_surroundings(labels, count, barrier, smooth, grad,
+                                             config.bone_threshold) >= _LOWER_SHARE
+        enclosed_tissue |= cut_off
     tissue |= enclosed_tissue[labels]
     bone = valid & ~air & ~tissue
     bone = (bone | pins) & valid
