@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -19,7 +20,7 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.kernels import bilinear
 
-__all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "ViewObservation", "VisibleRegion"]
+__all__ = ["LABELS", "PIN_LABELS", "DistanceMap", "EdgeSearch", "ViewObservation", "VisibleRegion"]
 
 LABELS = ("bone", "pin1", "pin2")
 PIN_LABELS = ("pin1", "pin2")
@@ -136,6 +137,14 @@ class VisibleRegion:
         return found
 
 
+class EdgeSearch(Protocol):
+    """A frame's bone edges near an expected outline (:class:`slamtka.solver.imaging.edges.
+    BoneEdgeSearch`): given the bone model's projection as a mask over the undistorted
+    image, the edge pixels (N, 2, undistorted) found within ``reach_px`` of its outline."""
+
+    def __call__(self, footprint: np.ndarray, reach_px: float) -> np.ndarray: ...
+
+
 @dataclass
 class ViewObservation:
     """One X-ray view: calibrated camera, labelled contour pixels, identity."""
@@ -148,6 +157,9 @@ class ViewObservation:
     notes: dict[str, str] = field(default_factory=dict)
     # Where the bone's edge could be seen (None: wherever the camera's field reaches).
     bone_visible: VisibleRegion | None = None
+    # Searches the frame again for the bone's edges where the model says they are (None:
+    # only the contours given, e.g. drawn by hand).
+    bone_edge_search: EdgeSearch | None = None
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -166,7 +178,7 @@ class ViewObservation:
     def with_contours(self, **contours: np.ndarray) -> ViewObservation:
         """This view with some labels' contours replaced (and their distance maps afresh)."""
         return ViewObservation(self.view_id, self.camera, {**self.contours, **contours},
-                               self.notes, self.bone_visible)
+                               self.notes, self.bone_visible, self.bone_edge_search)
 
     def distance_map(self, label: str) -> DistanceMap:
         if label not in self._distance_maps:

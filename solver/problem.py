@@ -130,6 +130,18 @@ class JointProblem:
             return self
         return JointProblem(self.plan, views, c, self.naming_fixed)
 
+    def with_bone_edges_sought(self, poses: Mapping[PoseKey, Pose], reach_px: float) -> JointProblem:
+        """The problem with each view's bone contour replaced by the edges its frame shows
+        within ``reach_px`` of the bone model's outline at ``poses`` (views without an edge
+        search keep theirs): the model-guided search of :class:`EdgeSearch`."""
+        views = []
+        for k, view in enumerate(self.views):
+            if view.bone_edge_search is not None:
+                footprint = self.bone.contour.footprint(self.T_cam_body(poses, k, "bone"), view.camera, 1)
+                view = view.with_contours(bone=view.bone_edge_search(footprint, reach_px))
+            views.append(view)
+        return JointProblem(self.plan, views, self.config, self.naming_fixed)
+
     def _outline_px(self, k: int, label: str, poses: Mapping[PoseKey, Pose]) -> np.ndarray:
         """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
         view, T = self.views[k], self.T_cam_body(poses, k, label)

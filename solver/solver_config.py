@@ -50,6 +50,9 @@ class ScheduleConfig:
     coarse_pins: LMOptions = LMOptions(max_iterations=4, relative_tolerance=1e-3)
     coarse_loss_scales: tuple[float, ...] = (20.0, 6.0, 2.0)  # Cauchy scales, in sigmas
     light_mesh_min_scale: float = 10.0  # bone stages at this scale or wider trace the light mesh
+    # A bone stage off its contour seeks the bone's edges again near the model's outline,
+    # from this far out to this close (px), fitting the views to them each time.
+    bone_edge_reach_px: tuple[float, ...] = (16.0, 8.0, 4.0)
     coarse_all: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
     fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3,
                                 min_lambda=1e-3)

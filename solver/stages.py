@@ -145,6 +145,11 @@ class StageRunner:
         p = self.problem = self._attributed(stage, state)
         astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
                                       c.gates.max_coarse_bone_median_px, c.gates)
+        if astray is not None and any(view.bone_edge_search for view in p.views):
+            state = self._bone_edges_sought(stage, state)
+            p = self.problem = self._attributed(stage, state)
+            astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
+                                          c.gates.max_coarse_bone_median_px, c.gates)
         if astray is not None:
             # Lost already: the caller may restart from a global search at once.
             final = list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight()))
@@ -156,6 +161,19 @@ class StageRunner:
         for view_id in self.renamed:
             log.info("view %s: the pin labels were swapped to match the other views", view_id)
         return StagesResult(state, result.terms, result.report), False
+
+    def _bone_edges_sought(self, stage: Stage, state: State) -> State:
+        """The bone's edges sought again in each frame near the model's outline, from as
+        far as the views may still be off to close by, each time with the views fitted to
+        the edges found (:meth:`JointProblem.with_bone_edges_sought`)."""
+        for reach_px in self.problem.config.schedule.bone_edge_reach_px:
+            p = self.problem = self.problem.with_bone_edges_sought(state.poses, reach_px)
+            for scale in self.problem.config.schedule.coarse_loss_scales[1:]:
+                terms = p.silhouette_terms(stage.labels, 1.0, RobustLoss("cauchy", scale),
+                                           thinned=stage.thinned)
+                state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
+                                   self._options(stage), f"{stage.name} sought {reach_px:g} x{scale:g}")
+        return state
 
     def _silhouettes(self, stage: Stage, result: StagesResult) -> StagesResult:
         """E_mp of the stage's models (only the final energy, without a budget)."""

@@ -43,13 +43,21 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from slamtka.solver.camera import Camera
+from slamtka.solver.imaging.edges import (
+    BoneEdgeSearch,
+    bone_edges,
+    edges_along_normals,
+    gradient,
+    kept_in,
+    outline_with_normals,
+)
 from slamtka.solver.imaging.field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
 from slamtka.solver.imaging.response import linearised_attenuation
 from slamtka.solver.jsonfile import read_json_object
@@ -125,6 +133,9 @@ class ExtractedContours:
     # Where a bone edge would have been kept, in cells of VISIBLE_CELL_PX raw pixels (the
     # solver's VisibleRegion once undistorted); None for contours not extracted here.
     bone_visible: np.ndarray | None = None
+    # The frame's bone edges near any outline the solver asks about (raw pixels; None for
+    # contours not extracted here).
+    bone_edge_search: BoneEdgeSearch | None = None
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
@@ -142,78 +153,9 @@ class ExtractedContours:
         return ViewObservation(
             view_id, camera, {label: undistort(points) if len(points) else points
                               for label, points in self.as_dict().items()},
-            dict(self.diagnostics.get("missing", {})), visible)
-
-
-# -- sub-pixel edges along normals ----------------------------------------------------------
-
-def _outline_with_normals(mask: np.ndarray, min_length: int) -> tuple[np.ndarray, np.ndarray]:
-    """Boundary pixels of a mask (outer boundaries and holes) and their outward unit normals."""
-    found = cv2.findContours(mask.astype(np.uint8), cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)[0]
-    points, normals = [], []
-    for contour in found:
-        p = contour.reshape(-1, 2).astype(float)
-        if len(p) < min_length:
-            continue
-        k = 3
-        tangent = np.roll(p, -k, axis=0) - np.roll(p, k, axis=0)
-        norm = np.linalg.norm(tangent, axis=1, keepdims=True)
-        n = np.column_stack([tangent[:, 1], -tangent[:, 0]]) / np.maximum(norm, 1e-9)
-        points.append(p)
-        normals.append(n)
-    if not points:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    p, n = np.vstack(points), np.vstack(normals)
-    # Orient normals away from the mask.
-    probe = np.round(p + 2.5 * n).astype(int)
-    h, w = mask.shape
-    probe = np.clip(probe, 0, [w - 1, h - 1])
-    flip = mask[probe[:, 1], probe[:, 0]] > 0
-    n[flip] *= -1
-    return p, n
-
-
-# A silhouette's path length grows like sqrt(depth) inside the outline; blurred by a
-# Gaussian of sigma, the steepest fall of that profile sits _SQRT_PEAK sigma inside the true
-# outline and the sharpest bend (its onset) _SQRT_ONSET sigma outside it.
-_SQRT_PEAK, _SQRT_ONSET = 0.765, 0.551
-
-
-def _edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray,
-                         normals: np.ndarray, search: float, min_strength: float,
-                         search_in: float | None = None,
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Along each outward normal, where the image falls fastest within ``search_in`` (default
-    ``search``) px inwards and ``search`` px outwards.
-
-    Returns the sub-pixel edge positions, their normals, the fall per pixel there, and the
-    distance from the steepest fall out to the sharpest bend of the profile (NaN when not
-    measurable), which measures the blur of the imaging chain.
-    """
-    empty = np.zeros((0, 2))
-    if len(points) == 0:
-        return empty, empty, np.zeros(0), np.zeros(0)
-    step = 0.25
-    s = np.arange(-(search if search_in is None else search_in), search + step / 2, step)
-    samples = points[:, None, :] + s[None, :, None] * normals[:, None, :]
-    map_u, map_v = samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32)
-    gx = cv2.remap(grad[0], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    gy = cv2.remap(grad[1], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    drop = -(gx * normals[:, 0:1] + gy * normals[:, 1:2])  # positive where the image falls outwards
-    peak = np.argmax(drop, axis=1)
-    best = np.clip(peak, 1, len(s) - 2)
-    rows = np.arange(len(points))
-    y0, y1, y2 = drop[rows, best - 1], drop[rows, best], drop[rows, best + 1]
-    curvature = y0 - 2 * y1 + y2
-    shift = np.where(curvature < 0, 0.5 * (y0 - y2) / np.where(curvature < 0, curvature, -1), 0.0)
-    position = s[best] + np.clip(shift, -1, 1) * step
-    # The bend: where the fall weakens fastest, outside the peak.
-    weakening = -np.diff(drop, axis=1)
-    outside = np.arange(len(s) - 1)[None, :] >= peak[:, None]
-    bend_index = np.argmax(np.where(outside, weakening, -np.inf), axis=1)
-    bend = np.where(bend_index < len(s) - 2, s[bend_index] + step / 2 - position, np.nan)
-    ok = (peak > 0) & (peak < len(s) - 1) & (y1 >= min_strength)
-    return ((points + position[:, None] * normals)[ok], normals[ok], y1[ok], bend[ok])
+            dict(self.diagnostics.get("missing", {})), visible,
+            None if self.bone_edge_search is None else replace(
+                self.bone_edge_search, distort=distort, undistort=undistort))
 
 
 # -- pins ----------------------------------------------------------------------------------
@@ -657,14 +599,13 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     if good.any():
         good &= tops >= _PIN_PEAK_SHARE * tops[good].max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
-    points, normals = _outline_with_normals(mask, 10)
+    points, normals = outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
     transmission = cv2.GaussianBlur(np.exp(-(A - background)).astype(np.float32), (0, 0),
                                     config.smoothing_px)
-    grad = (-cv2.Sobel(transmission, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
-            -cv2.Sobel(transmission, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
-    edges, normals, _, _ = _edges_along_normals(grad, points, normals, config.edge_search_px,
+    grad = gradient(-transmission)
+    edges, normals, _, _ = edges_along_normals(grad, points, normals, config.edge_search_px,
                                                 config.min_edge_strength)
     edges = edges + config.pin_edge_offset_px * normals
     if len(edges) < _MIN_PIN_EDGES:
@@ -788,19 +729,10 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     bone = big[labels]
     # Holes smaller than the minimum bone area are noise inside bone, not gaps between bones.
     bone = fill_holes(bone, config.min_bone_area_px)
-    points, normals = _outline_with_normals(bone, 30)
-    edges, normals, strength, bend = _edges_along_normals(
-        grad, points, normals, config.edge_search_px, config.min_edge_strength,
-        config.edge_search_px + config.bone_reach_in_px)
-    # Blur of the imaging chain (with our smoothing) from the image itself. Two estimates of
-    # the outline are exact for a sqrt-onset profile: the steepest fall moved out by
-    # _SQRT_PEAK sigma, and this point's sharpest bend moved in by _SQRT_ONSET sigma. Where
-    # the profile departs from the model (a plateau seen edge-on rises more gently) their
-    # mean is closer to the outline than either (median, p95 and coverage on simulated frames).
-    sigma = float(np.nanmedian(bend) / (_SQRT_PEAK + _SQRT_ONSET)) if np.any(np.isfinite(bend)) else 0.0
-    from_bend = np.where(np.isfinite(bend), bend - _SQRT_ONSET * sigma, _SQRT_PEAK * sigma)
-    shift = 0.5 * (_SQRT_PEAK * sigma + from_bend) + config.bone_edge_offset_px
-    edges = edges + shift[:, None] * normals
+    points, normals = outline_with_normals(bone, 30)
+    edges, strength, sigma = bone_edges(grad, points, normals, config.edge_search_px,
+                                        config.edge_search_px + config.bone_reach_in_px,
+                                        config.min_edge_strength, config.bone_edge_offset_px)
     return edges, {"bone_mask_area_px": int(bone.sum()), "bone_candidates": len(points),
                    "edge_blur_sigma_px": sigma,
                    "bone_edge_strength_median": float(np.median(strength)) if len(strength) else 0.0}
@@ -923,15 +855,6 @@ def _border(broad: np.ndarray) -> np.ndarray:
     return broad & ~(cv2.erode(broad.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
 
 
-def _keep(points: np.ndarray, allowed: np.ndarray) -> np.ndarray:
-    h, w = allowed.shape
-    pix = np.round(points).astype(int)
-    inside = (pix[:, 0] >= 0) & (pix[:, 1] >= 0) & (pix[:, 0] < w) & (pix[:, 1] < h)
-    ok = np.zeros(len(points), bool)
-    ok[inside] = allowed[pix[inside, 1], pix[inside, 0]]
-    return points[ok]
-
-
 # An unforeseen failure inside a step is still a frame we cannot read, not a crash of the
 # caller: it is refused naming the step (the fuzz test over varied frames keeps it unused).
 _UNFORESEEN = (ValueError, TypeError, IndexError, ZeroDivisionError, FloatingPointError,
@@ -1005,8 +928,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     A = np.where(valid, A, fill).astype(np.float32)
     smoothing = _smoothing_for_noise(A, valid, config)
     smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
-    grad = (cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3) / 8.0,
-            cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3) / 8.0)
+    grad = gradient(smooth)
     coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
     air = valid & (coarse < np.percentile(coarse[::2, ::2][valid[::2, ::2]], 0.5) + config.air_margin)
     to_air = _distance_to(air)
@@ -1023,8 +945,9 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
-    bone = _keep(bone, bone_visible & (to_air > 3.0))
-    pin1, pin2 = _keep(pin1, pins_ok), _keep(pin2, pins_ok)
+    bone_edges_visible = bone_visible & (to_air > 3.0)
+    bone = kept_in(bone, bone_edges_visible)
+    pin1, pin2 = kept_in(pin1, pins_ok), kept_in(pin2, pins_ok)
     missing = {label: _why_missing(k, expected_pins, broad)
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
@@ -1038,7 +961,9 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     }
     half = VISIBLE_CELL_PX // 2
     return ExtractedContours(bone, pin1, pin2, diagnostics,
-                             bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy())
+                             bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy(),
+                             BoneEdgeSearch.of_frame(smooth, bone_edges_visible, config.min_edge_strength,
+                                                     config.bone_edge_offset_px))
 
 
 def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:
@@ -1079,7 +1004,8 @@ def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedCont
             if not np.all(np.isfinite(pts)):
                 raise ContourError(f"{path}: view {view_id} {key} has non-finite points")
             labelled[label] = pts
-        views[view_id] = ExtractedContours(**labelled, diagnostics={"source": "manual"})
+        views[view_id] = ExtractedContours(labelled["bone"], labelled["pin1"], labelled["pin2"],
+                                           diagnostics={"source": "manual"})
     if not views:
         raise ContourError(f"{path}: no views")
     return coordinates, views

@@ -1,0 +1,62 @@
+"""The model-guided bone edge search: edges are found along the model outline's normals,
+placed on the true outline, in undistorted pixels, and only where the frame shows bone."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from slamtka.solver.imaging.edges import BoneEdgeSearch
+
+SIZE, CENTRE, RADIUS = 400, np.array([200.0, 210.0]), 100.0
+SHIFT = np.array([6.0, -4.0])  # raw = ideal + SHIFT: a "distortion" whose inverse is exact
+
+
+def _disk_frame() -> np.ndarray:
+    """The smoothed attenuation of a bone seen as a disk (path length growing like a
+    sphere's chord) over flat tissue, in raw pixels."""
+    v, u = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    r2 = (u - CENTRE[0]) ** 2 + (v - CENTRE[1]) ** 2
+    attenuation = (0.4 * np.sqrt(np.maximum(RADIUS ** 2 - r2, 0.0)) / RADIUS).astype(np.float32)
+    return cv2.GaussianBlur(attenuation, (0, 0), 1.5)
+
+
+def _footprint(centre: np.ndarray, radius: float) -> np.ndarray:
+    mask = np.zeros((SIZE, SIZE), np.uint8)
+    cv2.circle(mask, tuple(int(round(c)) for c in centre), int(round(radius)), 1, -1)
+    return mask
+
+
+def _search(visible: np.ndarray | None = None) -> BoneEdgeSearch:
+    search = BoneEdgeSearch.of_frame(_disk_frame(), np.ones((SIZE, SIZE), bool) if visible is None
+                                     else visible, 0.015, 0.0)
+    return replace(search, distort=lambda p: p + SHIFT, undistort=lambda p: p - SHIFT)
+
+
+def test_edges_are_found_on_the_outline_from_a_model_off_by_more_than_the_mask_search():
+    """The model's outline lies 10 px outside the bone (and the image is offset by its
+    distortion): within a 14 px reach the edges found lie on the true outline."""
+    ideal_centre = CENTRE - SHIFT
+    edges = _search()(_footprint(ideal_centre + [4.0, 3.0], RADIUS + 7.0), 14.0)
+    radii = np.linalg.norm(edges - ideal_centre, axis=1)
+    assert len(edges) > 200
+    assert np.median(np.abs(radii - RADIUS)) < 0.7
+    assert np.percentile(np.abs(radii - RADIUS), 95) < 1.5
+
+
+def test_no_edge_is_found_beyond_the_reach_or_where_the_frame_hides_the_bone():
+    ideal_centre = CENTRE - SHIFT
+    assert len(_search()(_footprint(ideal_centre, RADIUS + 25.0), 14.0)) == 0
+    hidden = np.ones((SIZE, SIZE), bool)
+    hidden[:, :int(CENTRE[0])] = False  # the left half: metal, say
+    edges = _search(hidden)(_footprint(ideal_centre, RADIUS), 6.0)
+    assert len(edges) > 50
+    assert np.all(edges[:, 0] + SHIFT[0] >= CENTRE[0] - 1.0)
+
+
+@pytest.mark.parametrize("reach", [4.0, 12.0])
+def test_an_empty_footprint_finds_nothing(reach):
+    assert _search()(np.zeros((SIZE, SIZE), np.uint8), reach).shape == (0, 2)
