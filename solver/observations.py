@@ -140,9 +140,10 @@ class VisibleRegion:
 class EdgeSearch(Protocol):
     """A frame's bone edges near an expected outline (:class:`slamtka.solver.imaging.edges.
     BoneEdgeSearch`): given the bone model's projection as a mask over the undistorted
-    image, the edge pixels (N, 2, undistorted) found within ``reach_px`` of its outline."""
+    image, the edge pixels (N, 2, undistorted) found within ``reach_px`` of its outline,
+    and the share of its visible outline that found one."""
 
-    def __call__(self, footprint: np.ndarray, reach_px: float) -> np.ndarray: ...
+    def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]: ...
 
 
 @dataclass

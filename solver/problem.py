@@ -76,10 +76,12 @@ class JointProblem:
     """Variables, terms and gauge of one solve, built from a plan and the views."""
 
     def __init__(self, plan: Plan, views: list[ViewObservation], config: SolverConfig,
-                 naming_fixed: bool = False):
-        """``naming_fixed``: take the views' pin names as given (no :meth:`relabelled`)."""
+                 naming_fixed: bool = False, edges_sought: bool = False):
+        """``naming_fixed``: take the views' pin names as given (no :meth:`relabelled`);
+        ``edges_sought``: the bone contours were found near the model's outline
+        (:meth:`with_bone_edges_sought`), so its fit to them proves less."""
         self.plan, self.views, self.config = plan, list(views), config
-        self.naming_fixed = naming_fixed
+        self.naming_fixed, self.edges_sought = naming_fixed, edges_sought
         self.bone = plan.bone_model()
         self.pin = plan.pin_model()
         # The pose variables: each view's camera, then each pin (the bone is the reference).
@@ -128,19 +130,25 @@ class JointProblem:
                 views[k] = view.with_contours(**kept)
         if all(a is b for a, b in zip(views, self.views)):
             return self
-        return JointProblem(self.plan, views, c, self.naming_fixed)
+        return JointProblem(self.plan, views, c, self.naming_fixed, self.edges_sought)
+
+    def bone_edges_sought(self, poses: Mapping[PoseKey, Pose], k: int, reach_px: float
+                          ) -> tuple[np.ndarray, float]:
+        """The edges view ``k``'s frame shows within ``reach_px`` of the bone model's
+        outline at ``poses``, and the share of its visible outline that found one (the
+        view's :class:`EdgeSearch`, which it must have)."""
+        view = self.views[k]
+        assert view.bone_edge_search is not None
+        footprint = self.bone.contour.footprint(self.T_cam_body(poses, k, "bone"), view.camera, 1)
+        return view.bone_edge_search(footprint, reach_px)
 
     def with_bone_edges_sought(self, poses: Mapping[PoseKey, Pose], reach_px: float) -> JointProblem:
         """The problem with each view's bone contour replaced by the edges its frame shows
         within ``reach_px`` of the bone model's outline at ``poses`` (views without an edge
-        search keep theirs): the model-guided search of :class:`EdgeSearch`."""
-        views = []
-        for k, view in enumerate(self.views):
-            if view.bone_edge_search is not None:
-                footprint = self.bone.contour.footprint(self.T_cam_body(poses, k, "bone"), view.camera, 1)
-                view = view.with_contours(bone=view.bone_edge_search(footprint, reach_px))
-            views.append(view)
-        return JointProblem(self.plan, views, self.config, self.naming_fixed)
+        search keep theirs)."""
+        views = [view.with_contours(bone=self.bone_edges_sought(poses, k, reach_px)[0])
+                 if view.bone_edge_search is not None else view for k, view in enumerate(self.views)]
+        return JointProblem(self.plan, views, self.config, self.naming_fixed, edges_sought=True)
 
     def _outline_px(self, k: int, label: str, poses: Mapping[PoseKey, Pose]) -> np.ndarray:
         """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
@@ -192,7 +200,7 @@ class JointProblem:
                 views, swapped, kept, changed = trial, swapped + [views[k].view_id], changed, kept
             if not naming_clear(kept, changed):
                 unclear.append(views[k].view_id)
-        problem = JointProblem(self.plan, views, self.config) if swapped else self
+        problem = JointProblem(self.plan, views, self.config, edges_sought=self.edges_sought) if swapped else self
         return problem, swapped, unclear
 
     def triangulated_pins(self, poses: Mapping[PoseKey, Pose]) -> dict[PoseKey, Pose]:

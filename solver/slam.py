@@ -74,6 +74,7 @@ class SolveOutcome:
     edge_point_counts: dict[str, int] = field(default_factory=dict)
     initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
+    bone_edges_sought: bool = False  # the bone contours were sought near the model's outline
     why: Why | None = None  # the kind of refusal, when not measured (a stable code)
     renamed: list[str] = field(default_factory=list)  # views whose pin names were swapped
     unclear_naming: list[str] = field(default_factory=list)  # views whose pin names were open
@@ -208,6 +209,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: Mapping[Pos
     # The contour points offered (as extracted), and those that kept an edge point.
     outcome.point_counts = problem.point_counts()
     outcome.edge_point_counts = attributed.named(attributed.edge_point_counts(result.terms))
+    outcome.bone_edges_sought = attributed.edges_sought
     outcome.renamed, outcome.unclear_naming = runner.renamed, runner.unclear_naming
     return outcome
 
@@ -225,8 +227,8 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     hidden = gates.hidden_outline(d, limits)
     if hidden is not None:
         return _refused(problem, Why.BONE_OUTLINE_INSUFFICIENT, hidden, state, report, rms, start)
-    for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.pin_divergence, Why.GATE_FAILED),
-                      (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
+    for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.sought_edges_missing, Why.GATE_FAILED),
+                      (gates.pin_divergence, Why.GATE_FAILED), (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
         misfit = gate(d, limits)
         if misfit is None:
             continue

@@ -77,6 +77,7 @@ class GateLimits:
     max_pin_divergence_deg: float = 3.0
     max_odometry_rms_sigma: float = 7.5
     max_coarse_bone_median_px: float = 4.0
+    min_sought_edge_share: float = 0.5  # of the outline, where its edges were sought near it
     min_visible_outline_share: float = 0.4
     max_pin_overlap_share: float = 0.6
     max_angle_sigma_deg: float = 2.0

@@ -40,23 +40,24 @@ def test_edges_are_found_on_the_outline_from_a_model_off_by_more_than_the_mask_s
     """The model's outline lies 10 px outside the bone (and the image is offset by its
     distortion): within a 14 px reach the edges found lie on the true outline."""
     ideal_centre = CENTRE - SHIFT
-    edges = _search()(_footprint(ideal_centre + [4.0, 3.0], RADIUS + 7.0), 14.0)
+    edges, share = _search()(_footprint(ideal_centre + [4.0, 3.0], RADIUS + 7.0), 14.0)
     radii = np.linalg.norm(edges - ideal_centre, axis=1)
-    assert len(edges) > 200
+    assert len(edges) > 200 and share > 0.95
     assert np.median(np.abs(radii - RADIUS)) < 0.7
     assert np.percentile(np.abs(radii - RADIUS), 95) < 1.5
 
 
 def test_no_edge_is_found_beyond_the_reach_or_where_the_frame_hides_the_bone():
     ideal_centre = CENTRE - SHIFT
-    assert len(_search()(_footprint(ideal_centre, RADIUS + 25.0), 14.0)) == 0
+    assert _search()(_footprint(ideal_centre, RADIUS + 25.0), 14.0)[1] == 0.0
     hidden = np.ones((SIZE, SIZE), bool)
     hidden[:, :int(CENTRE[0])] = False  # the left half: metal, say
-    edges = _search(hidden)(_footprint(ideal_centre, RADIUS), 6.0)
-    assert len(edges) > 50
+    edges, share = _search(hidden)(_footprint(ideal_centre, RADIUS), 6.0)
+    assert len(edges) > 50 and share > 0.95  # of the visible half
     assert np.all(edges[:, 0] + SHIFT[0] >= CENTRE[0] - 1.0)
 
 
 @pytest.mark.parametrize("reach", [4.0, 12.0])
 def test_an_empty_footprint_finds_nothing(reach):
-    assert _search()(np.zeros((SIZE, SIZE), np.uint8), reach).shape == (0, 2)
+    edges, share = _search()(np.zeros((SIZE, SIZE), np.uint8), reach)
+    assert edges.shape == (0, 2) and share == 0.0

@@ -660,6 +660,17 @@ def _with_rms(rms: dict[str, float]) -> SolveDiagnostics:
     return SolveDiagnostics(rms, 0, None, (), 3.0, (), (), 0.0, 90.0)
 
 
+def test_edges_sought_near_the_model_must_be_seen_along_most_of_its_outline():
+    """Edges sought near a pose fit it whatever it is; the frame must show the bone's edge
+    along most of the outline at the poses solved (a view 7 deg off found a third)."""
+    seen = replace(_with_rms({}), sought_edge_shares=(("view1", 0.83), ("view2", 0.65)))
+    assert gates.sought_edges_missing(seen, GateLimits()) is None
+    unseen = replace(seen, sought_edge_shares=(("view1", 0.83), ("view2", 0.33)))
+    assert gates.sought_edges_missing(unseen, GateLimits()) == (
+        "the bone's edge, sought near its outline, is seen along only 33% of it in view view2 (< 50%)")
+    assert gates.sought_edges_missing(_with_rms({}), GateLimits()) is None  # none sought
+
+
 @pytest.mark.system
 def test_views_that_disagree_with_the_encoders_motion_are_refused(phantom_plan):
     """A solve whose views moved otherwise than the encoders measured (here the encoders

@@ -107,11 +107,11 @@ def _scores(frame: RoomFrame, found: ExtractedContours) -> dict:
     return scores
 
 
-def realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
+def realism_case(job: tuple[str, str, int, tuple[int, ...], str], config: SolverConfig = SolverConfig()) -> dict:
     """One case of one scene and model: its frames' scores and its solve at every level; a
     defect is recorded with its place (one case cannot sink the study)."""
     try:
-        return _realism_case(job)
+        return _realism_case(job, config)
     except Exception as exc:
         where = traceback.extract_tb(exc.__traceback__)[-1]
         model, scene, seed, levels, _ = job
@@ -120,7 +120,7 @@ def realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
                 "levels": {level: {"status": "error", "reason": reason} for level in levels}}
 
 
-def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
+def _realism_case(job: tuple[str, str, int, tuple[int, ...], str], config: SolverConfig) -> dict:
     model, scene, seed, levels, data = job
     data_path = Path(data)
     row: dict = {"model": model, "scene": scene, "seed": seed, "frames": [], "levels": {}}
@@ -177,7 +177,7 @@ def _realism_case(job: tuple[str, str, int, tuple[int, ...], str]) -> dict:
             row["levels"][level] = {"status": "refused", "reason": refusal}
             continue
         try:
-            outcome = solve_joint(plan, views, case.initial, SolverConfig())
+            outcome = solve_joint(plan, views, case.initial, config)
         except Exception as exc:  # a defect: recorded with its place
             where = traceback.extract_tb(exc.__traceback__)[-1]
             row["levels"][level] = {"status": "error",

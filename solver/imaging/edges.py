@@ -165,18 +165,20 @@ class BoneEdgeSearch:
         level = np.float32(np.median(smooth[::4, ::4]))
         return BoneEdgeSearch((smooth - level).astype(np.float16), visible, min_strength, offset_px)
 
-    def __call__(self, footprint: np.ndarray, reach_px: float) -> np.ndarray:
+    def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]:
         """Edge pixels (N, 2), undistorted, within ``reach_px`` of the outline of
-        ``footprint``: the model's projection, a mask over the undistorted image."""
+        ``footprint`` (the model's projection, a mask over the undistorted image), and the
+        share of the outline's visible samples that found one."""
         outline, normals = outline_with_normals(footprint, 30)
         outline, normals = outline[::_GUIDED_SPACING_PX], normals[::_GUIDED_SPACING_PX]
-        if len(outline) == 0:
-            return np.zeros((0, 2))
+        raw = self.distort(outline) if len(outline) else outline
+        seen = len(kept_in(raw, self.visible))
+        if seen == 0:
+            return np.zeros((0, 2)), 0.0
         # The normals carried through the distortion, which turns them only slightly.
-        raw = self.distort(outline)
         raw_normals = self.distort(outline + normals) - raw
         raw_normals /= np.maximum(np.linalg.norm(raw_normals, axis=1, keepdims=True), 1e-9)
-        edges, _, _ = bone_edges(gradient(self.attenuation.astype(np.float32)), raw, raw_normals, reach_px, reach_px,
-                                 self.min_strength, self.offset_px)
+        edges, _, _ = bone_edges(gradient(self.attenuation.astype(np.float32)), raw, raw_normals,
+                                 reach_px, reach_px, self.min_strength, self.offset_px)
         edges = kept_in(edges, self.visible)
-        return self.undistort(edges) if len(edges) else np.zeros((0, 2))
+        return (self.undistort(edges) if len(edges) else np.zeros((0, 2))), len(edges) / seen
