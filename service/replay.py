@@ -161,6 +161,10 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
         notes.append("the recorded bone mesh does not match the digest of the plan that was used")
     if repr(SolverConfig()) != inputs["solver_config"]:
         notes.append("this software's solver configuration differs from the recorded one")
+    solver = (rec.result or {}).get("solver") or {}
+    if solver.get("bone_edges") == "sought near the model":
+        notes.append("the run sought the bone's edges in its frames near the model's outline; "
+                     "the recording holds the extracted contours only, so the re-run cannot")
     camera = Camera.from_json(inputs["camera"])
     views = [ViewObservation(v["view_id"], camera,
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
