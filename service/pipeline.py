@@ -518,7 +518,9 @@ class Pipeline:
         return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
-                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
+                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json(),
+                           "bone_edge_search": (None if o.bone_edge_search is None
+                                                else o.bone_edge_search.to_json())}
                           for o in observations],
                 "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],
                             "T_tibia_pin": [T.to_json() for T in initial.T_tibia_pin],

@@ -24,6 +24,8 @@ from slamtka.service.results import MeasurementResult
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose
+from slamtka.solver.imaging.calibration_file import calibration_from_document
+from slamtka.solver.imaging.edges import BoneEdgeSearch
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.measurement import fit_resection_plane
 from slamtka.solver.observations import LABELS, ViewObservation, VisibleRegion
@@ -161,16 +163,18 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
         notes.append("the recorded bone mesh does not match the digest of the plan that was used")
     if repr(SolverConfig()) != inputs["solver_config"]:
         notes.append("this software's solver configuration differs from the recorded one")
-    solver = (rec.result or {}).get("solver") or {}
-    if solver.get("bone_edges") == "sought near the model":
-        notes.append("the run sought the bone's edges in its frames near the model's outline; "
-                     "the recording holds the extracted contours only, so the re-run cannot")
     camera = Camera.from_json(inputs["camera"])
     views = [ViewObservation(v["view_id"], camera,
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
                              dict(v.get("notes", {})),
-                             VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None)
+                             VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None,
+                             _recorded_edge_search(rec, v.get("bone_edge_search")))
              for v in inputs["views"]]
+    solver = (rec.result or {}).get("solver") or {}
+    if solver.get("bone_edges") == "sought near the model" and any(
+            v.bone_edge_search is None for v in views):
+        notes.append("the run sought the bone's edges in its frames near the model's outline; "
+                     "this recording does not hold what they were sought in, so the re-run cannot")
     init = inputs["initial"]
     pin1, pin2 = (Pose.from_json(T) for T in init["T_tibia_pin"])
     initial = InitialGuess(tuple(Pose.from_json(T) for T in init["T_cam_tibia"]), (pin1, pin2),
@@ -180,6 +184,16 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
         return {"status": outcome.status, "reason": outcome.reason}, notes
     ctr_deg, str_deg = outcome.angles_deg
     return {"status": "measured", "ctr_deg": ctr_deg, "str_deg": str_deg}, notes
+
+
+def _recorded_edge_search(rec: Recording, doc: dict | None) -> BoneEdgeSearch | None:
+    """A view's bone edge search as the run recorded it, through the run's calibration (the
+    search maps the solver's undistorted outline to the frame's raw pixels)."""
+    if doc is None:
+        return None
+    calibration = calibration_from_document(rec.documents.get("calibration") or {},
+                                            "the recorded calibration")
+    return BoneEdgeSearch.from_json(doc, calibration.distort_points, calibration.undistort_points)
 
 
 def _summary(rec: Recording) -> str:

@@ -145,6 +145,8 @@ class EdgeSearch(Protocol):
 
     def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]: ...
 
+    def to_json(self) -> dict: ...
+
 
 @dataclass
 class ViewObservation:

@@ -3,6 +3,7 @@ placed on the true outline, in undistorted pixels, and only where the frame show
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import cv2
@@ -61,3 +62,16 @@ def test_no_edge_is_found_beyond_the_reach_or_where_the_frame_hides_the_bone():
 def test_an_empty_footprint_finds_nothing(reach):
     edges, share = _search()(np.zeros((SIZE, SIZE), np.uint8), reach)
     assert edges.shape == (0, 2) and share == 0.0
+
+
+def test_a_recorded_search_finds_the_same_edges():
+    """A run's recording holds each view's search, so that ``replay --resolve`` seeks the
+    bone's edges as the run did."""
+    search = _search()
+    doc = json.loads(json.dumps(search.to_json()))
+    again = BoneEdgeSearch.from_json(doc, search.distort, search.undistort)
+    footprint = _footprint(CENTRE - SHIFT + [4.0, 3.0], RADIUS + 7.0)
+    (edges, share), (edges_again, share_again) = search(footprint, 14.0), again(footprint, 14.0)
+    assert np.array_equal(edges, edges_again) and share == share_again
+    with pytest.raises(ValueError, match="needs 100 values"):
+        BoneEdgeSearch.from_json({**doc, "shape": [10, 10]}, search.distort, search.undistort)

@@ -23,7 +23,7 @@ from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.distortion import Distortion
 from slamtka.solver.jsonfile import read_json_object
 
-__all__ = ["Calibration", "CalibrationError", "load_calibration", "calibration_document",
+__all__ = ["Calibration", "CalibrationError", "load_calibration", "calibration_document", "calibration_from_document",
            "write_calibration", "assign_device", "FORMAT", "FORMAT_V1"]
 
 FORMAT = "slamtka-calibration/2"
@@ -164,12 +164,18 @@ def load_calibration(path: str | Path) -> Calibration:
         doc = read_json_object(path)
     except ValueError as exc:
         raise CalibrationError(str(exc)) from None
+    return calibration_from_document(doc, str(path))
+
+
+def calibration_from_document(doc: dict, where: str) -> Calibration:
+    """A calibration file's content (as read, or as a run recorded it), verified; ``where``
+    names it in errors."""
     if doc.get("format") not in (FORMAT, FORMAT_V1):
-        raise CalibrationError(f"{path}: format {doc.get('format')!r} "
+        raise CalibrationError(f"{where}: format {doc.get('format')!r} "
                                f"is not {FORMAT!r} or {FORMAT_V1!r}")
     body = {k: v for k, v in doc.items() if k != "sha256"}
     if doc.get("sha256") != _digest(body):
-        raise CalibrationError(f"{path}: calibration checksum does not match its content")
+        raise CalibrationError(f"{where}: calibration checksum does not match its content")
     try:
         camera = Camera.from_json(doc["camera"])
         distortion_doc = doc.get("distortion") or {"model": "none"}
@@ -181,5 +187,5 @@ def load_calibration(path: str | Path) -> Calibration:
         spacing = None if spacing is None else (float(spacing[0]), float(spacing[1]))
         calibration_id = str(doc["id"])
     except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise CalibrationError(f"{path}: malformed calibration ({exc})") from None
+        raise CalibrationError(f"{where}: malformed calibration ({exc})") from None
     return Calibration(camera, distortion, calibration_id, doc["sha256"], spacing, doc)

@@ -9,6 +9,8 @@ the imaging chain measured in the frame itself.
 
 from __future__ import annotations
 
+import base64
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -164,6 +166,33 @@ class BoneEdgeSearch:
         """The search over a frame's smoothed attenuation (float32, raw pixels)."""
         level = np.float32(np.median(smooth[::4, ::4]))
         return BoneEdgeSearch((smooth - level).astype(np.float16), visible, min_strength, offset_px)
+
+    def to_json(self) -> dict:
+        """The search as JSON (the attenuation compressed, the region as packed bits, both in
+        base64), so that a recorded run can be solved again as it was."""
+        def packed(data: bytes) -> str:
+            return base64.b64encode(zlib.compress(data, 6)).decode("ascii")
+
+        return {"shape": list(self.attenuation.shape),
+                "attenuation_float16": packed(np.ascontiguousarray(self.attenuation, "<f2").tobytes()),
+                "visible_bits": packed(np.packbits(self.visible.ravel()).tobytes()),
+                "min_strength": self.min_strength, "offset_px": self.offset_px}
+
+    @staticmethod
+    def from_json(doc: dict, distort: Callable[[np.ndarray], np.ndarray],
+                  undistort: Callable[[np.ndarray], np.ndarray]) -> BoneEdgeSearch:
+        """The search :meth:`to_json` wrote, through the given distortion."""
+        def unpacked(text: str) -> bytes:
+            return zlib.decompress(base64.b64decode(text))
+
+        h, w = (int(n) for n in doc["shape"])
+        attenuation = np.frombuffer(unpacked(doc["attenuation_float16"]), "<f2")
+        bits = np.frombuffer(unpacked(doc["visible_bits"]), np.uint8)
+        if attenuation.size != h * w or bits.size * 8 < h * w:
+            raise ValueError(f"a bone edge search of {h} x {w} px needs {h * w} values")
+        visible = np.unpackbits(bits)[:h * w].reshape(h, w).astype(bool)
+        return BoneEdgeSearch(attenuation.astype(np.float16).reshape(h, w), visible,
+                              float(doc["min_strength"]), float(doc["offset_px"]), distort, undistort)
 
     def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]:
         """Edge pixels (N, 2), undistorted, within ``reach_px`` of the outline of
