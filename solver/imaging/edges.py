@@ -149,12 +149,13 @@ class BoneEdgeSearch:
     Only edges where the frame shows the bone (in the field, clear of metal, text, pins'
     shadows and the skin) are returned.
 
-    It keeps the frame's smoothed attenuation in half precision, over its median (a
-    service holds many frames' contours while views wait for their run: 2 MB a frame, not
-    the 8 MB of its gradient), and takes the gradient again when asked."""
+    It keeps the frame's smoothed attenuation in half precision, over its median, and the
+    region as bits (a service holds many frames' contours while views wait for their run:
+    2.1 MB a frame, not the 9 MB of its gradient and mask), and takes the gradient again
+    when asked."""
 
     attenuation: np.ndarray  # (H, W) float16: the smoothed attenuation over its median, raw pixels
-    visible: np.ndarray  # (H, W) bool over raw pixels: where a bone edge may be kept
+    visible_bits: np.ndarray  # np.packbits of the (H, W) mask over raw pixels where a bone edge may be kept
     min_strength: float  # attenuation fall per pixel at an accepted edge
     offset_px: float  # outward shift of bone edges (ContourConfig.bone_edge_offset_px)
     distort: Callable[[np.ndarray], np.ndarray] = _unchanged  # undistorted (ideal) to raw pixels
@@ -165,7 +166,8 @@ class BoneEdgeSearch:
                  offset_px: float) -> BoneEdgeSearch:
         """The search over a frame's smoothed attenuation (float32, raw pixels)."""
         level = np.float32(np.median(smooth[::4, ::4]))
-        return BoneEdgeSearch((smooth - level).astype(np.float16), visible, min_strength, offset_px)
+        return BoneEdgeSearch((smooth - level).astype(np.float16), np.packbits(visible.ravel()),
+                              min_strength, offset_px)
 
     def to_json(self) -> dict:
         """The search as JSON (the attenuation compressed, the region as packed bits, both in
@@ -175,7 +177,7 @@ class BoneEdgeSearch:
 
         return {"shape": list(self.attenuation.shape),
                 "attenuation_float16": packed(np.ascontiguousarray(self.attenuation, "<f2").tobytes()),
-                "visible_bits": packed(np.packbits(self.visible.ravel()).tobytes()),
+                "visible_bits": packed(self.visible_bits.tobytes()),
                 "min_strength": self.min_strength, "offset_px": self.offset_px}
 
     @staticmethod
@@ -190,8 +192,7 @@ class BoneEdgeSearch:
         bits = np.frombuffer(unpacked(doc["visible_bits"]), np.uint8)
         if attenuation.size != h * w or bits.size * 8 < h * w:
             raise ValueError(f"a bone edge search of {h} x {w} px needs {h * w} values")
-        visible = np.unpackbits(bits)[:h * w].reshape(h, w).astype(bool)
-        return BoneEdgeSearch(attenuation.astype(np.float16).reshape(h, w), visible,
+        return BoneEdgeSearch(attenuation.astype(np.float16).reshape(h, w), bits[:-(-h * w // 8)].copy(),
                               float(doc["min_strength"]), float(doc["offset_px"]), distort, undistort)
 
     def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]:
@@ -201,7 +202,9 @@ class BoneEdgeSearch:
         outline, normals = outline_with_normals(footprint, 30)
         outline, normals = outline[::_GUIDED_SPACING_PX], normals[::_GUIDED_SPACING_PX]
         raw = self.distort(outline) if len(outline) else outline
-        seen = len(kept_in(raw, self.visible))
+        visible = np.unpackbits(self.visible_bits, count=self.attenuation.size).reshape(
+            self.attenuation.shape).astype(bool)
+        seen = len(kept_in(raw, visible))
         if seen == 0:
             return np.zeros((0, 2)), 0.0
         # The normals carried through the distortion, which turns them only slightly.
@@ -209,5 +212,5 @@ class BoneEdgeSearch:
         raw_normals /= np.maximum(np.linalg.norm(raw_normals, axis=1, keepdims=True), 1e-9)
         edges, _, _ = bone_edges(gradient(self.attenuation.astype(np.float32)), raw, raw_normals,
                                  reach_px, reach_px, self.min_strength, self.offset_px)
-        edges = kept_in(edges, self.visible)
+        edges = kept_in(edges, visible)
         return (self.undistort(edges) if len(edges) else np.zeros((0, 2))), len(edges) / seen
