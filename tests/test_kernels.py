@@ -10,7 +10,9 @@ from slamtka.solver.kernels import (
     nearest_points,
     outline_samples,
     point_blocks,
+    pinhole,
     scatter_add,
+    silhouette_rows,
 )
 
 
@@ -93,3 +95,30 @@ def test_point_blocks_and_couplings_are_the_batched_products():
     sums, seen = scatter_add(keys, values, 9)
     np.testing.assert_allclose(sums, [values[keys == k].sum(axis=0) for k in range(9)], atol=1e-14)
     np.testing.assert_array_equal(seen, [k in keys for k in range(9)])
+
+
+@pytest.mark.parametrize("jacobian", [False, True])
+def test_silhouette_rows_are_the_numpy_path_to_the_last_bit(jacobian):
+    """Distance-map values at the charged outline points and each observed pixel's distance
+    to its nearest one, with their camera-frame gradients: bit for bit the numpy
+    expressions the silhouette term used before."""
+    rng = np.random.default_rng(5)
+    p_cam = rng.normal([0.0, 0.0, 900.0], [60.0, 60.0, 20.0], (400, 3))
+    values = rng.uniform(0.0, 50.0, (300, 400)).astype(np.float32)
+    origin = np.array([200.0, 180.0])
+    charged = np.flatnonzero(rng.uniform(size=400) < 0.8)
+    nearest = rng.integers(0, 400, 250)
+    observed = rng.uniform(300.0, 700.0, (250, 2))
+    intrinsics = (1100.0, 1090.0, 512.0, 500.0, 1.0)
+    r, J_cam = silhouette_rows(p_cam, *intrinsics, values, origin, charged, nearest, observed, jacobian)
+    uv, J_proj = pinhole(p_cam, *intrinsics, jacobian)
+    dist, grad = bilinear(values, origin, uv[charged])
+    offset = uv[nearest] - observed
+    norms = np.sqrt(np.einsum("ij,ij->i", offset, offset))
+    assert np.array_equal(r, np.concatenate([dist, norms])[:, None])
+    if not jacobian:
+        assert J_cam.shape == (0, 3)
+        return
+    J_pix = np.concatenate([grad, offset / np.maximum(norms, 1e-9)[:, None]])
+    rows = np.concatenate([charged, nearest])
+    assert np.array_equal(J_cam, np.einsum("nk,nkj->nj", J_pix, J_proj[rows]))
