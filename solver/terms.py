@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slamtka.solver.camera import MIN_DEPTH_MM, Camera
-from slamtka.solver.geometry import Pose, cross, hat, so3_log, so3_right_jacobian_inverse
-from slamtka.solver.kernels import nearest_points, silhouette_rows
+from slamtka.solver.geometry import Pose, hat, so3_log, so3_right_jacobian_inverse
+from slamtka.solver.kernels import nearest_points, silhouette_rows, twist_rows
 from slamtka.solver.observations import DistanceMap, VisibleRegion
 from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
@@ -53,8 +53,8 @@ def pose_increments(
     """
     def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
         """(N, ..., 6) from ``G`` = d / d(T p) R (N, ..., 3) and the pose's source points p."""
-        p = p.reshape((len(p),) + (1,) * (G.ndim - 2) + (3,))
-        return np.concatenate([G, cross(p, G)], axis=-1)
+        rows = twist_rows(np.ascontiguousarray(G).reshape(len(G), -1, 3), np.ascontiguousarray(p))
+        return rows.reshape(G.shape[:-1] + (6,))
 
     def rotated(G: np.ndarray, R: np.ndarray) -> np.ndarray:
         return (G.reshape(-1, 3) @ R).reshape(G.shape)

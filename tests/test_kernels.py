@@ -5,14 +5,16 @@ import pytest
 
 from slamtka.solver.kernels import (
     bilinear,
+    contour_generators,
     coupling_blocks,
     in_field,
     nearest_points,
     outline_samples,
-    point_blocks,
     pinhole,
+    point_blocks,
     scatter_add,
     silhouette_rows,
+    twist_rows,
 )
 
 
@@ -122,3 +124,25 @@ def test_silhouette_rows_are_the_numpy_path_to_the_last_bit(jacobian):
     J_pix = np.concatenate([grad, offset / np.maximum(norms, 1e-9)[:, None]])
     rows = np.concatenate([charged, nearest])
     assert np.array_equal(J_cam, np.einsum("nk,nkj->nj", J_pix, J_proj[rows]))
+
+
+def test_contour_generators_are_the_edges_between_front_and_back_faces_run_by_the_front():
+    rng = np.random.default_rng(6)
+    front = rng.uniform(size=500) < 0.5
+    faces = rng.integers(0, 500, (800, 2))
+    edges = rng.integers(0, 300, (800, 2))
+    first = front[faces[:, 0]]
+    on = first != front[faces[:, 1]]
+    expected = np.where(first[on, None], edges[on], edges[on][:, ::-1])
+    found = contour_generators(front, faces, edges)
+    assert found.dtype == edges.dtype and np.array_equal(found, expected)
+
+
+def test_twist_rows_are_the_gradient_and_its_moment_to_the_last_bit():
+    rng = np.random.default_rng(7)
+    G, p = rng.normal(size=(300, 2, 3)), rng.normal(size=(300, 3)) * 100.0
+    a, b = p[:, None, :], G
+    moment = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                       a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    assert np.array_equal(twist_rows(G, p), np.concatenate([G, moment], axis=-1))
