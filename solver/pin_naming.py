@@ -6,10 +6,9 @@ any two image lines back-project to some 3-D line, so the wrong naming still fit
 tilts the plane about the pins' direction (7 deg on one simulated case). The views are first
 put right by how well each pin's sightings meet (:func:`swap_pays`). Where the pins lie near
 a plane through both X-ray sources their sightings meet about as well either way
-(:func:`naming_clear` is false): unless the pins alone, refitted under both namings at the
-views solved, settle it (:func:`refit_settles`), the case is then solved under both namings
-and :func:`settle_naming` keeps the one that fits clearly better, or the one plane both
-agree on, and otherwise refuses, naming the views. Measured in docs/solver.md ("Pin naming").
+(:func:`naming_clear` is false): the case is then solved under both namings and
+:func:`settle_naming` keeps the one that fits clearly better, or the one plane both agree
+on, and otherwise refuses, naming the views. Measured in docs/solver.md ("Pin naming").
 """
 
 from __future__ import annotations
@@ -22,8 +21,8 @@ from slamtka.solver.geometry import Pose
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.triangulation import PinSighting, sighting_score
 
-__all__ = ["naming_score", "swap_pins", "swap_pays", "naming_clear", "refit_settles", "settle_naming",
-           "NAMING_MIN_COST_GAP", "NAMING_PLANE_TOLERANCE_DEG", "NAMING_REFIT_GAP"]
+__all__ = ["naming_score", "swap_pins", "swap_pays", "naming_clear", "settle_naming", "NAMING_MIN_COST_GAP",
+           "NAMING_PLANE_TOLERANCE_DEG"]
 
 # A view's names are swapped when the swap at least halves how badly the pins' sightings
 # meet and gains more than a millimetre; they are clear when the other naming is worse by
@@ -41,12 +40,6 @@ NAMING_MIN_COST_GAP = 100.0
 # refusal of another naming that does not let the first stand (gates imports this module).
 _ANSWER_GATE_FAILED = "gate_failed"
 NAMING_PLANE_TOLERANCE_DEG = 0.5
-# The pins alone, refitted to their silhouettes with the views held where the first solve
-# put them (final cost, as above), favoured the right naming by 233-6,200 on all 79
-# simulated cases whose names were open after the first solve (docs/speed.md, 2026-12-06);
-# the two full solves, by 72-6,900. The names solved stand without the other naming's
-# solve only where the refit favours them by this much (and their sightings agree).
-NAMING_REFIT_GAP = 200.0
 
 
 class _Solved(Protocol):
@@ -91,14 +84,6 @@ def naming_clear(chosen_mm: float, other_mm: float) -> bool:
     if not np.isfinite(chosen_mm):
         return True
     return swap_pays(other_mm, chosen_mm)
-
-
-def refit_settles(named_cost: float, other_cost: float, named_mm: float, other_mm: float) -> bool:
-    """Whether the names solved stand without solving the other naming: the pins refitted
-    alone (views held) cost at least ``NAMING_REFIT_GAP`` more under the other naming, and
-    the pins' sightings (``*_mm``, :func:`naming_score`) do not favour it. Otherwise both
-    namings are solved and :func:`settle_naming` decides."""
-    return other_mm >= named_mm and other_cost - named_cost >= NAMING_REFIT_GAP
 
 
 def settle_naming(first: Solved, second: Solved, views: list[str],

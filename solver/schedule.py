@@ -19,7 +19,7 @@ from typing import Literal
 
 from slamtka.solver.observations import LABELS, PIN_LABELS
 
-__all__ = ["METHODS", "PIN_REFIT", "SCHEDULES", "Held", "MethodSchedule", "Stage", "Step"]
+__all__ = ["METHODS", "SCHEDULES", "Held", "MethodSchedule", "Stage", "Step"]
 
 
 class Step(Enum):
@@ -106,8 +106,3 @@ SCHEDULES: dict[str, MethodSchedule] = {
 }
 
 METHODS = tuple(SCHEDULES)
-
-# Not a method: the pins alone triangulated and fitted to their silhouettes with the views
-# held, to compare two namings of the pins at views already solved (solver.pin_naming).
-PIN_REFIT = MethodSchedule((_PINS, Stage(Step.SILHOUETTES, "pin naming refit", PIN_LABELS, Held.VIEWS,
-                                         "coarse_pins")))

@@ -36,10 +36,10 @@ from slamtka.solver.geometry import Pose
 from slamtka.solver.measurement import ResectionPlane, fit_resection_plane
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.optimizer import IterationInfo, SolveReport, State, Term
-from slamtka.solver.pin_naming import naming_clear, naming_score, refit_settles, settle_naming, swap_pins
+from slamtka.solver.pin_naming import naming_clear, naming_score, settle_naming, swap_pins
 from slamtka.solver.plan import Plan
 from slamtka.solver.problem import InitialGuess, JointProblem, named_poses
-from slamtka.solver.schedule import METHODS, PIN_REFIT
+from slamtka.solver.schedule import METHODS
 from slamtka.solver.setup_search import search_setup
 from slamtka.solver.solver_config import SolverConfig
 from slamtka.solver.stages import StageRunner
@@ -120,17 +120,6 @@ def solve_joint(
     if naming_clear(named_mm, other_mm):
         outcome.unclear_naming = []
         return outcome
-    # Cheaper than solving the other naming: the pins alone refitted under both namings at
-    # the views solved; a clear verdict for the names solved settles it.
-    if other_mm >= named_mm:
-        refits = [_pin_refit(plan, v, config, initial, outcome.T_cam_tibia, callback)
-                  for v in (named, other_views)]
-        outcome.iterations += refits[0][1] + refits[1][1]
-        if refit_settles(refits[0][0], refits[1][0], named_mm, other_mm):
-            log.info("views %s: pin names open; the pins refitted swapped cost %.0f more",
-                     unclear, refits[1][0] - refits[0][0])
-            outcome.unclear_naming, outcome.seconds = [], time.perf_counter() - start
-            return outcome
     # From the views the first solve found, and without the global searches: astray, this
     # naming simply does not measure. (Going on from the first solve's bone stage instead
     # saves ~0.3 s, but measured a 20-run swapped-names study case 30 deg off: the right
@@ -176,18 +165,6 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
     chosen = outcome if outcome.status == "measured" else best
     chosen.iterations = iterations
     return chosen
-
-
-def _pin_refit(plan: Plan, views: list[ViewObservation], config: SolverConfig, initial: InitialGuess,
-               T_cam_tibia: list[Pose], callback: Callable[[str, IterationInfo], None] | None
-               ) -> tuple[float, int]:
-    """The final cost of the pins alone triangulated and fitted to their silhouettes under
-    the views' names, the views held at ``T_cam_tibia`` (:data:`PIN_REFIT`), and its
-    iterations."""
-    runner = StageRunner(JointProblem(plan, views, config, naming_fixed=True), initial, callback,
-                         PIN_REFIT)
-    result = runner.run(State(named_poses(T_cam_tibia, initial.T_tibia_pin), np.zeros((0, 3))))
-    return sum(result.report.term_costs.values()), runner.iterations
 
 
 def _refused(problem: JointProblem, why: Why, reason: str, state: State | None,

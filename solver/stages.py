@@ -27,7 +27,7 @@ from slamtka.solver.optimizer import (
     levenberg_marquardt,
 )
 from slamtka.solver.problem import InitialGuess, JointProblem
-from slamtka.solver.schedule import SCHEDULES, Held, MethodSchedule, Stage, Step
+from slamtka.solver.schedule import SCHEDULES, Held, Stage, Step
 from slamtka.solver.variables import PoseKey
 
 __all__ = ["StageRunner", "StagesResult"]
@@ -70,14 +70,13 @@ class StagesResult:
 
 
 class StageRunner:
-    """The stages of the configured method (or of ``schedule``), run one after another;
-    ``problem`` is replaced as the bone stage drops foreign edges and matches pin labels."""
+    """The stages of the configured method, run one after another; ``problem`` is replaced
+    as the bone stage drops foreign edges and matches pin labels."""
 
     def __init__(self, problem: JointProblem, initial: InitialGuess,
-                 callback: Callable[[str, IterationInfo], None] | None,
-                 schedule: MethodSchedule | None = None):
+                 callback: Callable[[str, IterationInfo], None] | None):
         self.problem, self.callback = problem, callback
-        self.schedule = schedule or SCHEDULES[problem.config.method]
+        self.schedule = SCHEDULES[problem.config.method]
         self.odometry = problem.odometry_terms(initial) if self.schedule.odometry else []
         self.iterations, self.seconds = 0, 0.0
         self.renamed: list[str] = []  # views whose pin names were swapped

@@ -13,7 +13,7 @@ from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
-from slamtka.solver.pin_naming import refit_settles, settle_naming, swap_pins
+from slamtka.solver.pin_naming import settle_naming, swap_pins
 from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.slam import METHODS, InitialGuess, SolverConfig, solve_joint
@@ -693,25 +693,6 @@ def test_pin_names_swapped_in_one_view_are_put_right(phantom_plan, seed):
     assert outcome.status == "measured", outcome.reason
     assert max(_errors(case, outcome)) < 0.3
     assert (outcome.renamed, outcome.unclear_naming) == (["view2"], [] if seed == 2 else ["view2"])
-
-
-@pytest.mark.system
-def test_open_names_that_the_pins_refit_settles_are_solved_once(phantom_plan):
-    # Level-1 seed 3's pins meet about as well either way at the poses solved; refitted alone
-    # with the views held they fit clearly worse swapped, so the other naming is not solved.
-    case = simulate_case(phantom_plan, SimulationConfig.at_level(1, 3))
-    outcome = solve_joint(phantom_plan, case.views, case.initial)
-    assert outcome.status == "measured", outcome.reason
-    assert max(_errors(case, outcome)) < 0.3
-    assert (outcome.renamed, outcome.unclear_naming) == ([], [])
-    assert outcome.iterations < 60  # one full solve and two refits of 4 iterations each
-
-
-def test_the_pins_refit_settles_names_only_clearly_and_with_the_sightings():
-    assert refit_settles(1300.0, 1700.0, named_mm=0.8, other_mm=1.3)
-    assert not refit_settles(1300.0, 1450.0, named_mm=0.8, other_mm=1.3)  # too close to call
-    assert not refit_settles(1300.0, 1700.0, named_mm=1.3, other_mm=0.8)  # sightings disagree
-    assert not refit_settles(1700.0, 1300.0, named_mm=0.8, other_mm=1.3)  # the other fits better
 
 
 def test_two_namings_that_fit_alike_but_disagree_are_refused():
