@@ -85,17 +85,17 @@ class Camera:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
-    def _intrinsics(self) -> tuple[float, float, float, float]:
+    def intrinsics(self) -> tuple[float, float, float, float]:
         """(fx, fy, cx, cy) as floats: one compiled projection kernel for every camera."""
         return float(self.fx), float(self.fy), float(self.cx), float(self.cy)
 
     def project(self, p_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of camera-frame points (N, 3)."""
-        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, False)[0]
+        return pinhole(np.asarray(p_cam, float), *self.intrinsics, MIN_DEPTH_MM, False)[0]
 
     def project_with_jacobian(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels (N, 2) and their Jacobian (N, 2, 3) with respect to the camera-frame point."""
-        return pinhole(np.asarray(p_cam, float), *self._intrinsics, MIN_DEPTH_MM, True)
+        return pinhole(np.asarray(p_cam, float), *self.intrinsics, MIN_DEPTH_MM, True)
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         """Unit directions (N, 3) in the camera frame of the rays through pixels (N, 2)."""

@@ -13,19 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Pose", "cross", "hat", "largest_angle_deg", "row_norms", "so3_exp", "so3_log", "so3_right_jacobian_inverse",
+__all__ = ["Pose", "hat", "largest_angle_deg", "row_norms", "so3_exp", "so3_log", "so3_right_jacobian_inverse",
            "rotation_about", "look_at"]
 
 _I3 = np.eye(3)
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a x b`` over the last axis (length 3), broadcasting; written out by component
-    because ``np.cross`` spends more time arranging axes than multiplying on the solver's
-    many small arrays."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def row_norms(v: np.ndarray) -> np.ndarray:

@@ -14,7 +14,10 @@ cost more than the rest of the term), and the bilinear lookup of an image's dist
 (every iteration of every term on a view's contour: a few hundred points, where numpy's
 per-call overhead of some twenty array passes dominated), as it does in the camera's
 projection of a term's points (several times per iteration and term), the sampling of a
-traced outline, and the points' blocks of the normal equations and their sums by key.
+traced outline, the contour generators of a pose, the Jacobian rows of a pose increment, a
+silhouette term's residual rows and their gradients (projection, lookups
+and nearest-pair distances: some fifteen array passes per evaluation, several hundred
+evaluations per solve), and the points' blocks of the normal equations and their sums by key.
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
@@ -24,8 +27,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks",
-           "scatter_add", "schur_complement", "trilinear", "warm_up"]
+__all__ = ["bilinear", "contour_generators", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks",
+           "scatter_add", "schur_complement", "silhouette_rows", "trilinear", "twist_rows", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -201,6 +204,79 @@ def bilinear(values: np.ndarray, origin: np.ndarray, uv: np.ndarray) -> tuple[np
             if out_v != 0.0:
                 grad[p, 1] = out_v / dist_out
     return value, grad
+
+
+@numba.njit(cache=True, nogil=True)
+def contour_generators(front: np.ndarray, adjacent_faces: np.ndarray, adjacent_edges: np.ndarray
+                       ) -> np.ndarray:
+    """The shared edges (E, 2) of ``adjacent_edges`` (A, 2) whose two faces
+    (``adjacent_faces``, A, 2) are one front-facing (``front``, F) and one not, in their
+    order, each run as its front face runs it (reversed where that is the second face)."""
+    out = np.empty(adjacent_edges.shape, adjacent_edges.dtype)
+    kept = 0
+    for e in range(adjacent_edges.shape[0]):
+        first = front[adjacent_faces[e, 0]]
+        if first == front[adjacent_faces[e, 1]]:
+            continue
+        a, b = (0, 1) if first else (1, 0)
+        out[kept, 0], out[kept, 1] = adjacent_edges[e, a], adjacent_edges[e, b]
+        kept += 1
+    return out[:kept]
+
+
+@numba.njit(cache=True, nogil=True)
+def twist_rows(G: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``[G, p x G]`` (N, m, 6) of gradients ``G`` (N, m, 3) and points ``p`` (N, 3): the
+    Jacobian rows of a right pose increment (``terms.pose_increments``), component by
+    component as ``geometry.cross`` forms them."""
+    n, m = G.shape[0], G.shape[1]
+    out = np.empty((n, m, 6))
+    for i in range(n):
+        a0, a1, a2 = p[i, 0], p[i, 1], p[i, 2]
+        for k in range(m):
+            b0, b1, b2 = G[i, k, 0], G[i, k, 1], G[i, k, 2]
+            out[i, k, 0], out[i, k, 1], out[i, k, 2] = b0, b1, b2
+            out[i, k, 3] = a1 * b2 - a2 * b1
+            out[i, k, 4] = a2 * b0 - a0 * b2
+            out[i, k, 5] = a0 * b1 - a1 * b0
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def silhouette_rows(p_cam: np.ndarray, fx: float, fy: float, cx: float, cy: float, min_depth: float,
+                    values: np.ndarray, origin: np.ndarray, charged: np.ndarray, nearest: np.ndarray,
+                    observed: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A silhouette term's residuals (C + M, 1): the distance-map value (``values``,
+    ``origin`` as in :func:`bilinear`) at each ``charged`` outline point, then each observed
+    pixel's (M, 2) distance to its ``nearest`` outline point, for camera-frame outline points
+    ``p_cam`` (N, 3) projected by :func:`pinhole`; with ``jacobian`` also each residual's
+    gradient (C + M, 3) with respect to its camera-frame point (else an empty (0, 3)). The
+    arithmetic of the numpy path, to the last bit, in one pass."""
+    n_c, n_o = charged.shape[0], nearest.shape[0]
+    uv, J_proj = pinhole(p_cam, fx, fy, cx, cy, min_depth, jacobian)
+    uv_charged = np.empty((n_c, 2))
+    for c in range(n_c):
+        uv_charged[c, 0], uv_charged[c, 1] = uv[charged[c], 0], uv[charged[c], 1]
+    dist, grad = bilinear(values, origin, uv_charged)
+    r = np.empty((n_c + n_o, 1))
+    J_cam = np.empty((n_c + n_o if jacobian else 0, 3))
+    for c in range(n_c):
+        r[c, 0] = dist[c]
+        if jacobian:
+            q = charged[c]
+            for j in range(3):
+                J_cam[c, j] = grad[c, 0] * J_proj[q, 0, j] + grad[c, 1] * J_proj[q, 1, j]
+    for o in range(n_o):
+        q = nearest[o]
+        du, dv = uv[q, 0] - observed[o, 0], uv[q, 1] - observed[o, 1]
+        d = np.sqrt(du * du + dv * dv)
+        r[n_c + o, 0] = d
+        if jacobian:
+            m = max(d, 1e-9)
+            eu, ev = du / m, dv / m
+            for j in range(3):
+                J_cam[n_c + o, j] = eu * J_proj[q, 0, j] + ev * J_proj[q, 1, j]
+    return r, J_cam
 
 
 @numba.njit(cache=True, nogil=True)
@@ -426,6 +502,8 @@ def warm_up() -> None:
     schur_complement(np.eye(3)[None], np.zeros((1, 3)), np.zeros((1, 1, 6, 3)),
                      np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
+    contour_generators(np.ones(2, np.bool_), np.array([[0, 1]]), np.array([[0, 1]]))
+    twist_rows(np.zeros((1, 1, 3)), np.zeros((1, 3)))
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
     in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
@@ -437,5 +515,8 @@ def warm_up() -> None:
         outline_samples(np.zeros((1, 2)), np.ones((1, 2)), 1.0, 2, 2, 0.0, np.inf, mask, 4)
     for jacobian in (False, True):
         pinhole(np.ones((1, 3)), 1.0, 1.0, 0.0, 0.0, 1.0, jacobian)
+        silhouette_rows(np.ones((1, 3)), 1.0, 1.0, 0.0, 0.0, 1.0,
+                        np.zeros((2, 2), np.float32), np.zeros(2), np.zeros(1, np.int64),
+                        np.zeros(1, np.int64), np.zeros((1, 2)), jacobian)
     for gradient in (False, True):
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)

@@ -75,13 +75,18 @@ class DistanceMap:
         field[v:v + h, u:u + w] = np.minimum(self.values, limit_px)
         return field
 
+    @property
+    def origin_uv(self) -> np.ndarray:
+        """``origin`` as the float array (2,) the compiled lookups take."""
+        return np.asarray(self.origin, float)
+
     def query(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (N,) and gradients (N, 2) in d/du, d/dv at pixel positions (N, 2).
 
         Beyond the window the distance keeps growing linearly so projections that fall
         outside are pulled back in.
         """
-        return bilinear(self.values, np.asarray(self.origin, float), np.asarray(uv, float))
+        return bilinear(self.values, self.origin_uv, np.asarray(uv, float))
 
 
 @dataclass(frozen=True)

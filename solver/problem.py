@@ -58,7 +58,9 @@ def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
     if len(pixels) == 0:
         return pixels
     cells = np.floor(pixels / spacing_px).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    cells -= cells.min(axis=0)
+    # One integer per cell (rows are unique in 1-D ten times faster than along an axis).
+    _, first = np.unique(cells[:, 0] * (cells[:, 1].max() + 1) + cells[:, 1], return_index=True)
     return pixels[np.sort(first)]
 
 

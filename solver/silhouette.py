@@ -19,7 +19,7 @@ import numpy as np
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.geometry import Pose, box_corners, row_norms
-from slamtka.solver.kernels import footprint_mask, outline_samples
+from slamtka.solver.kernels import contour_generators, footprint_mask, outline_samples
 
 if TYPE_CHECKING:
     import trimesh
@@ -102,10 +102,7 @@ class ContourGenerator:
         """The contour generators (E, 2), each run as its front-facing face runs it, and the
         front-facing mask of the faces."""
         front = self._front_facing(T_cam_model.inverse().t)
-        first_front = front[self.adjacent_faces[:, 0]]
-        on_contour = first_front != front[self.adjacent_faces[:, 1]]
-        edges = self.adjacent_edges[on_contour]
-        return np.where(first_front[on_contour, None], edges, edges[:, ::-1]), front
+        return contour_generators(front, self.adjacent_faces, self.adjacent_edges), front
 
     def footprint(self, T_cam_model: Pose, camera: Camera, downscale: int = _MASK_DOWNSCALE) -> np.ndarray:
         """Binary mask (uint8, 1/downscale resolution) of the model's projection.

@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slamtka.solver.camera import Camera
-from slamtka.solver.geometry import Pose, cross, hat, row_norms, so3_log, so3_right_jacobian_inverse
-from slamtka.solver.kernels import nearest_points
+from slamtka.solver.camera import MIN_DEPTH_MM, Camera
+from slamtka.solver.geometry import Pose, hat, so3_log, so3_right_jacobian_inverse
+from slamtka.solver.kernels import nearest_points, silhouette_rows, twist_rows
 from slamtka.solver.observations import DistanceMap, VisibleRegion
 from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
@@ -53,8 +53,8 @@ def pose_increments(
     """
     def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
         """(N, ..., 6) from ``G`` = d / d(T p) R (N, ..., 3) and the pose's source points p."""
-        p = p.reshape((len(p),) + (1,) * (G.ndim - 2) + (3,))
-        return np.concatenate([G, cross(p, G)], axis=-1)
+        rows = twist_rows(np.ascontiguousarray(G).reshape(len(G), -1, 3), np.ascontiguousarray(p))
+        return rows.reshape(G.shape[:-1] + (6,))
 
     def rotated(G: np.ndarray, R: np.ndarray) -> np.ndarray:
         return (G.reshape(-1, 3) @ R).reshape(G.shape)
@@ -260,25 +260,15 @@ class ModelProjectionTerm:
             # Nothing of the model is in view: every observed pixel is unexplained.
             r = np.full((len(self.observed), 1), float(self.camera.width))
             return Linearization(r)
-        p_cam = T_cam_body.apply(S)
-        if jacobians:
-            uv, J_proj = self.camera.project_with_jacobian(p_cam)
-        else:
-            uv = self.camera.project(p_cam)
-        dist, grad = self.distance_map.query(uv[charged])
-        offset = uv[nearest] - self.observed
-        nearest_dist = row_norms(offset)
-        r = np.concatenate([dist, nearest_dist])[:, None]
+        # The residuals and d r / d p_cam = (d r / d uv) (d uv / d p_cam) in one compiled
+        # pass, for the silhouette's own points and for the silhouette point nearest each
+        # observed pixel; d p_cam / d xi follows for one row per residual.
+        r, J_cam = silhouette_rows(T_cam_body.apply(S), *self.camera.intrinsics, MIN_DEPTH_MM,
+                                   self.distance_map.values, self.distance_map.origin_uv, charged,
+                                   nearest, self.observed, jacobians)
         if not jacobians:
             return Linearization(r)
-        direction = offset / np.maximum(nearest_dist, 1e-9)[:, None]
-        # d r / d xi = (d r / d uv) (d uv / d p_cam) (d p_cam / d xi), for the silhouette's
-        # own points and for the silhouette point nearest each observed pixel; the pixel
-        # gradient is carried to the camera frame first, so the poses' blocks are formed
-        # for one row per residual instead of two.
         rows = np.concatenate([charged, nearest])
-        J_pix = np.concatenate([grad, direction])  # (N, 2)
-        J_cam = np.einsum("nk,nkj->nj", J_pix, J_proj[rows])  # (N, 3)
         J_view, J_body, _ = pose_increments(state, self.view, self.body, S[rows], J_cam)
         J_b = None if J_body is None else J_body[:, None, :]
         return Linearization(r, _pose_jacobians(self.view, self.body, J_view[:, None, :], J_b))

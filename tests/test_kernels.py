@@ -5,12 +5,16 @@ import pytest
 
 from slamtka.solver.kernels import (
     bilinear,
+    contour_generators,
     coupling_blocks,
     in_field,
     nearest_points,
     outline_samples,
+    pinhole,
     point_blocks,
     scatter_add,
+    silhouette_rows,
+    twist_rows,
 )
 
 
@@ -93,3 +97,52 @@ def test_point_blocks_and_couplings_are_the_batched_products():
     sums, seen = scatter_add(keys, values, 9)
     np.testing.assert_allclose(sums, [values[keys == k].sum(axis=0) for k in range(9)], atol=1e-14)
     np.testing.assert_array_equal(seen, [k in keys for k in range(9)])
+
+
+@pytest.mark.parametrize("jacobian", [False, True])
+def test_silhouette_rows_are_the_numpy_path_to_the_last_bit(jacobian):
+    """Distance-map values at the charged outline points and each observed pixel's distance
+    to its nearest one, with their camera-frame gradients: bit for bit the numpy
+    expressions the silhouette term used before."""
+    rng = np.random.default_rng(5)
+    p_cam = rng.normal([0.0, 0.0, 900.0], [60.0, 60.0, 20.0], (400, 3))
+    values = rng.uniform(0.0, 50.0, (300, 400)).astype(np.float32)
+    origin = np.array([200.0, 180.0])
+    charged = np.flatnonzero(rng.uniform(size=400) < 0.8)
+    nearest = rng.integers(0, 400, 250)
+    observed = rng.uniform(300.0, 700.0, (250, 2))
+    intrinsics = (1100.0, 1090.0, 512.0, 500.0, 1.0)
+    r, J_cam = silhouette_rows(p_cam, *intrinsics, values, origin, charged, nearest, observed, jacobian)
+    uv, J_proj = pinhole(p_cam, *intrinsics, jacobian)
+    dist, grad = bilinear(values, origin, uv[charged])
+    offset = uv[nearest] - observed
+    norms = np.sqrt(np.einsum("ij,ij->i", offset, offset))
+    assert np.array_equal(r, np.concatenate([dist, norms])[:, None])
+    if not jacobian:
+        assert J_cam.shape == (0, 3)
+        return
+    J_pix = np.concatenate([grad, offset / np.maximum(norms, 1e-9)[:, None]])
+    rows = np.concatenate([charged, nearest])
+    assert np.array_equal(J_cam, np.einsum("nk,nkj->nj", J_pix, J_proj[rows]))
+
+
+def test_contour_generators_are_the_edges_between_front_and_back_faces_run_by_the_front():
+    rng = np.random.default_rng(6)
+    front = rng.uniform(size=500) < 0.5
+    faces = rng.integers(0, 500, (800, 2))
+    edges = rng.integers(0, 300, (800, 2))
+    first = front[faces[:, 0]]
+    on = first != front[faces[:, 1]]
+    expected = np.where(first[on, None], edges[on], edges[on][:, ::-1])
+    found = contour_generators(front, faces, edges)
+    assert found.dtype == edges.dtype and np.array_equal(found, expected)
+
+
+def test_twist_rows_are_the_gradient_and_its_moment_to_the_last_bit():
+    rng = np.random.default_rng(7)
+    G, p = rng.normal(size=(300, 2, 3)), rng.normal(size=(300, 3)) * 100.0
+    a, b = p[:, None, :], G
+    moment = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                       a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+    assert np.array_equal(twist_rows(G, p), np.concatenate([G, moment], axis=-1))
