@@ -327,8 +327,8 @@ class Pipeline:
             on_output: Callable[[OutgoingObject], object] = lambda obj: None, *,
             run_id: str | None = None, measurement: dict | None = None,
             triggered: datetime | None = None, min_separation_deg: float = 15.0) -> RunOutcome:
-        """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result once every
-        result of the run is built and on disk (the report first).
+        """Measure ``views`` of ``case``; ``on_output`` gets each DICOM result once it is on
+        disk: the report as soon as it is, then the SCs once all of them are.
 
         ``run_id`` (default: the digest of the views' UIDs) names the run and its UIDs;
         ``measurement`` its place in the re-measurement loop (:mod:`service.pinsets`);
@@ -471,7 +471,8 @@ class Pipeline:
                            outcome.T_tibia_pin, _made(run.plan).pin_mesh, polygon, outcome.residual_rms)
 
     def _results(self, run: _Run) -> None:
-        """The validated result, then the SR and SCs, every one on disk before any is sent."""
+        """The validated result, then the SR, sent once on disk, then the SCs, sent once all
+        are on disk (the SR does not wait for the overlays: ~0.1 s)."""
         case, items, plan, outcome = run.case, run.items, run.plan, run.outcome
         refused = self._refused_sources(case, len(items), run.reasons)
         used = {i.view_id for i in items if i.used and i.contours is not None}
@@ -497,17 +498,22 @@ class Pipeline:
                      "sr_sop_instance_uid": uids["sr"],
                      "sc_sop_instance_uids": {i.view_id: uids[i.view_id] for i in items}},
             measurement=measurement)
+        run.objects = []
         try:
-            built = self._build_dicom(run.result, items, plan, outcome, run.observations, uids,
-                                      run.when, run.min_separation_deg)
-            run.objects = [self._save(ds, run.folder / name, kind, sop_class)
-                           for ds, name, kind, sop_class in built]
+            sr = self._build_sr(run.result, items, plan, outcome, uids, run.when,
+                                run.min_separation_deg)
+            run.objects.append(self._save(sr, run.folder / "sr.dcm", "sr", _SR_CLASS))
+            run.on_output(run.objects[0])  # the measurement reaches the display first
+            scs = [self._save(ds, run.folder / name, "sc", _SC_CLASS) for ds, name in
+                   self._build_scs(run.result, items, plan, outcome, run.observations, uids,
+                                   run.when, run.min_separation_deg)]
         except Exception as exc:  # values that passed receipt must not cost the result
             log.exception("case %s run %s: building the DICOM results failed", case.case_id,
                           run.run_id)
             run.dicom_error = f"{type(exc).__name__}: {exc}"[:500]
-            run.objects = []
-        for obj in run.objects:  # every object built and on disk before any is sent
+            return
+        run.objects += scs
+        for obj in scs:  # the overlays once every one is on disk
             run.on_output(obj)
 
     def _solver_inputs(self, plan: Plan, observations: list[ViewObservation],
@@ -557,20 +563,25 @@ class Pipeline:
         return out
 
     # -- DICOM results --------------------------------------------------------------------
-    def _build_dicom(self, result: MeasurementResult, items: list[_ViewInput], plan: Plan | None,
-                     outcome: SolveOutcome | None, observations: list[ViewObservation],
-                     uids: dict, when: datetime, min_separation_deg: float
-                     ) -> list[tuple[Dataset, str, str, str]]:
-        """The run's SR and SCs, built in memory: (dataset, file name, kind, SOP class)."""
+    def _build_sr(self, result: MeasurementResult, items: list[_ViewInput], plan: Plan | None,
+                  outcome: SolveOutcome | None, uids: dict, when: datetime,
+                  min_separation_deg: float) -> Dataset:
+        """The run's SR, built in memory."""
+        return build_sr([i.header for i in items], self._sr_measurement(result, plan, outcome),
+                        side=result.side, version=result.software_version,
+                        series_uid=uids["sr-series"], sop_instance_uid=uids["sr"],
+                        institution=self.institution,
+                        uid_for=lambda what: result_uid(result.case_id, result.run_id, what),
+                        content_datetime=when, notes=self._notes(result, min_separation_deg))
+
+    def _build_scs(self, result: MeasurementResult, items: list[_ViewInput], plan: Plan | None,
+                   outcome: SolveOutcome | None, observations: list[ViewObservation],
+                   uids: dict, when: datetime, min_separation_deg: float
+                   ) -> list[tuple[Dataset, str]]:
+        """The run's SCs (each view with its overlay), built in memory, with file names."""
         posed = {o.view_id: T for o, T in zip(observations, outcome.T_cam_tibia)} if outcome else {}
         measured = self._sr_measurement(result, plan, outcome)
-        notes = self._notes(result, min_separation_deg)
-        sr = build_sr([i.header for i in items], measured, side=result.side,
-                      version=result.software_version, series_uid=uids["sr-series"],
-                      sop_instance_uid=uids["sr"], institution=self.institution,
-                      uid_for=lambda what: result_uid(result.case_id, result.run_id, what),
-                      content_datetime=when, notes=notes)
-        built = [(sr, "sr.dcm", "sr", _SR_CLASS)]
+        built = []
         text = self._summary_lines(result, min_separation_deg)
         within = None if result.deviation is None else result.deviation.within_tolerance
         for n, item in enumerate(items, start=1):
@@ -591,7 +602,7 @@ class Pipeline:
                           sop_instance_uid=uids[item.view_id], instance_number=n,
                           orientation=orientation, institution=self.institution,
                           content_datetime=when)
-            built.append((sc, f"sc-{item.view_id}.dcm", "sc", _SC_CLASS))
+            built.append((sc, f"sc-{item.view_id}.dcm"))
         return built
 
     @staticmethod

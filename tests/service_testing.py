@@ -4,9 +4,12 @@ documents."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 import socket
 import sys
+import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -14,7 +17,8 @@ from slamtka.bench.pki import make_pki
 from slamtka.service import frames
 from slamtka.service.frames import Frame
 
-__all__ = ["free_port", "small_frame", "make_pki", "count_decoding", "result_document"]
+__all__ = ["free_port", "small_frame", "make_pki", "count_decoding", "result_document",
+           "run_result"]
 
 _EYE = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
 
@@ -24,6 +28,16 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+def run_result(folder: Path, timeout_s: float = 30.0) -> dict:
+    """The ``result.json`` of a run folder, once written: the SR reaches the display before
+    the run's SCs are built, and the result document is the run's last file."""
+    deadline = time.monotonic() + timeout_s
+    while not (folder / "result.json").is_file():
+        assert time.monotonic() < deadline, f"no result.json in {folder}"
+        time.sleep(0.05)
+    return json.loads((folder / "result.json").read_text())
 
 
 def small_frame(**changes) -> Frame:

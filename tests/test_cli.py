@@ -101,3 +101,19 @@ def test_accuracy_study_skips_a_case_the_simulator_cannot_build_and_goes_on(tmp_
     (result,) = json.loads((out / "results.json").read_text())["results"]
     assert result["runs"] == 1 and result["converged"] == 1
     assert result["skipped"] == ["seed 249: simulated pin line misses the bone; cannot place pins"]
+
+
+def test_only_the_program_leaves_its_objects_to_the_exit(tmp_path, monkeypatch):
+    """The `slamtka` program freezes the collector's objects as it ends (its last collection
+    would only cost time); a command run in-process, as here, must not."""
+    import gc
+
+    frozen = gc.get_freeze_count()
+    assert main(["solve", str(tmp_path)]) == 2
+    assert gc.get_freeze_count() == frozen
+    monkeypatch.setattr(sys, "argv", ["slamtka", "solve", str(tmp_path)])
+    try:
+        assert main() == 2
+        assert gc.get_freeze_count() > frozen
+    finally:
+        gc.unfreeze()

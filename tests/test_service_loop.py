@@ -246,7 +246,7 @@ def test_header_values_common_on_real_systems_still_build_the_results(attribute,
         assert str(clean[attribute].value) == expected
 
 
-def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything(
+def test_a_run_with_unusual_headers_measures_and_sends_the_report_first(
         rendered, tmp_path, monkeypatch):
     th, calibration, case, _, _ = rendered
     loop = Loop(tmp_path, th, calibration)
@@ -264,10 +264,13 @@ def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything
         sorted(p.name for p in obj.path.parent.glob("*.dcm"))))
     assert outcome.result.status == "measured"
     assert outcome.result.outputs.dicom_error is None
-    # Nothing was handed to the sender before every object of the run was on disk.
-    assert seen == [["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"]] * 3
+    # The report is handed to the sender once on disk, before the overlays are built; the
+    # overlays once both are on disk.
+    assert seen == [["sr.dcm"], ["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"],
+                    ["sc-view1.dcm", "sc-view2.dcm", "sr.dcm"]]
 
-    # A builder that fails anyway: result.json is still written, nothing is sent.
+    # An overlay the builder fails anyway: result.json is still written, the report was sent
+    # and no overlay is.
     import slamtka.service.pipeline as pipeline_module
 
     def broken(*args, **kwargs):
@@ -280,10 +283,17 @@ def test_a_run_with_unusual_headers_measures_and_sends_after_building_everything
     doc = json.loads((failed.folder / "result.json").read_text())
     assert doc["status"] == "measured" and "a value the builder refuses" in \
         doc["outputs"]["dicom_error"]
-    assert seen == []
+    assert [obj.kind for obj in seen] == ["sr"]
     loop.workflow.begin_run(c, views)
     loop.workflow.finish_run(c, doc["run_id"], MeasurementResult.from_document(doc))
     assert loop.events("output_failed")[0]["run_id"] == doc["run_id"]
+
+    # A report the builder fails: nothing is sent.
+    monkeypatch.setattr(pipeline_module, "build_sr", broken)
+    (outcome.folder / "result.json").unlink()
+    seen.clear()
+    failed = loop.pipeline.run(c, views, on_output=lambda obj: seen.append(obj))
+    assert failed.result.outputs.dicom_error and seen == []
 
 
 def test_views_that_cannot_start_a_measurement_are_told_to_the_display(rendered, tmp_path):

@@ -7,11 +7,11 @@ operator's re-run and new pin set through ``slamtka case``.
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 
 import pytest
+from service_testing import run_result
 
 from slamtka.service.audit import read_audit
 from slamtka.service.cli import main
@@ -80,7 +80,7 @@ def test_a_c_arm_clock_a_second_ahead_is_corrected_and_said(theatre):
     finally:
         th.clock_offset_s = 0.0
     _, sr = th.wait_for_result(case, exact=True)
-    doc = json.loads((th.result_folder(case) / "result.json").read_text())
+    doc = run_result(th.result_folder(case))
     assert doc["status"] == "measured", doc["reasons"]
     assert abs(doc["angles"]["ctr_deg"] - case.truth_ctr_deg) < 1.0
     assert abs(doc["angles"]["str_deg"] - case.truth_str_deg) < 1.0
