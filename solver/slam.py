@@ -134,6 +134,7 @@ def solve_joint(
         other.renamed = [v.view_id for v, given in zip(other_views, views) if v is not given]
     chosen.unclear_naming = unclear
     chosen.iterations = outcome.iterations + other.iterations
+    chosen.seconds = time.perf_counter() - start  # both namings' solves
     if refusal is not None:
         chosen.status, chosen.reason, chosen.why = "not_measured", refusal, Why.PINS_INDISTINCT
     return chosen
