@@ -12,7 +12,9 @@ a knee frame is centred on the leg, so its periphery is less attenuating than it
 attenuate most, stand out on the attenuating side (:func:`polarity_sign`). Only when both are
 ambiguous does the intensifier's no-signal level decide (the side it lies on is "no signal").
 
-``-log(signal)`` turns the frame into attenuation, in which bodies add.
+``-log(signal)`` turns the frame into attenuation, in which bodies add. Collimator blades
+that scatter and processing leave short of opaque are found from their straight edges
+across the field (:func:`collimator_shutters`).
 """
 
 from __future__ import annotations
@@ -313,6 +315,7 @@ def _side_views(x: np.ndarray) -> list[np.ndarray]:
 
 
 def _from_side_view(view: np.ndarray, side: int) -> np.ndarray:
+    """The inverse of :func:`_side_views` for one side."""
     return [view, view[::-1], view.T, view[::-1].T][side]
 
 
