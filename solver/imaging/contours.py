@@ -58,7 +58,14 @@ from slamtka.solver.imaging.edges import (
     kept_in,
     outline_with_normals,
 )
-from slamtka.solver.imaging.field import FieldError, attenuation, field_of_view, fill_holes, remove_overlays
+from slamtka.solver.imaging.field import (
+    FieldError,
+    attenuation,
+    collimator_shutters,
+    field_of_view,
+    fill_holes,
+    remove_overlays,
+)
 from slamtka.solver.imaging.response import linearised_attenuation
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.observations import ViewObservation, VisibleRegion
@@ -920,7 +927,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     valid &= r < (radius if radius is not None else np.inf) - halo
     broad = _broad_opaque(A, valid, config)
     field = valid.copy()
-    valid &= ~broad
+    # A collimator blade too faint to be opaque (scatter, processing) hides the bone as
+    # well: its noise and its straight edge are no bone's (pins are still sought there).
+    shutters, shutter_lines = collimator_shutters(A, valid & ~broad)
+    valid &= ~broad & ~shutters
     # Levels of the field from every other row and column: as good, and a quarter of the sort.
     fill = float(np.median(A[::2, ::2][valid[::2, ::2]]))
     # A pin is sought over broad metal too (a blade is no pin but a pin may cross it).
@@ -941,7 +951,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     if radius is None:
         rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
     pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
-    rim_ok &= _distance_to(broad) > margin
+    rim_ok &= _distance_to(broad | shutters) > margin
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)
@@ -955,7 +965,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright",
         "response": "linear" if linearised is None else "linearised from the noise", **pin_info, **bone_info,
-        "opaque_area_px": int(broad.sum()), "smoothing_px": smoothing, "missing": missing,
+        "opaque_area_px": int(broad.sum()), "shutters": len(shutter_lines),
+        "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},
         "seconds": time.perf_counter() - start,
     }

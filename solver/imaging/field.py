@@ -12,7 +12,9 @@ a knee frame is centred on the leg, so its periphery is less attenuating than it
 attenuate most, stand out on the attenuating side (:func:`polarity_sign`). Only when both are
 ambiguous does the intensifier's no-signal level decide (the side it lies on is "no signal").
 
-``-log(signal)`` turns the frame into attenuation, in which bodies add.
+``-log(signal)`` turns the frame into attenuation, in which bodies add. Collimator blades
+that scatter and processing leave short of opaque are found from their straight edges
+across the field (:func:`collimator_shutters`).
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["FieldError", "field_of_view", "attenuation", "fill_holes", "polarity_sign", "remove_overlays"]
+__all__ = ["FieldError", "field_of_view", "attenuation", "collimator_shutters", "fill_holes", "polarity_sign",
+           "remove_overlays"]
 
 
 class FieldError(ValueError):
@@ -291,3 +294,81 @@ def fill_holes(mask: np.ndarray, max_area: int | None = None) -> np.ndarray:
     if max_area is not None:
         fill &= stats[:, cv2.CC_STAT_AREA] < max_area
     return mask.astype(bool) | fill[labels]
+
+
+# Collimator shutters (below): frames are searched at this fraction of their size, for
+# straight edges within this many degrees of a side and this share of the frame from it.
+_SHUTTER_SCALE = 4
+_SHUTTER_ANGLES_DEG = np.arange(-10.0, 10.5, 1.0)
+_SHUTTER_REACH = 0.35
+_SHUTTER_BAND = 3  # rows (at the search scale) on either side of the edge that are compared
+# A shutter's edge rises towards the frame's side by at least this attenuation over this
+# share of its length in the field, and its line crosses this share of the field.
+_SHUTTER_STEP = 0.15
+_SHUTTER_ALONG = 0.75
+_SHUTTER_SPAN = 0.5
+
+
+def _side_views(x: np.ndarray) -> list[np.ndarray]:
+    """``x`` seen with each side of the frame on top (top, bottom, left, right)."""
+    return [x, x[::-1], x.T, x.T[::-1]]
+
+
+def _from_side_view(view: np.ndarray, side: int) -> np.ndarray:
+    """The inverse of :func:`_side_views` for one side."""
+    return [view, view[::-1], view.T, view[::-1].T][side]
+
+
+def collimator_shutters(A: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, list[tuple[int, float, float]]]:
+    """Where collimator blades cover the frame (a mask), and their edges as ``(side,
+    offset px, slope)`` with the frame's side on top: ``v = offset + slope (u - w / 2)``.
+
+    A blade closes in from a side of the frame: its shadow is more attenuating than the
+    field next to it, with a straight edge nearly parallel to that side that crosses the
+    whole field, at every point of it a step up towards the side, and nothing beyond it is
+    as clear as the field. A bone's shaft can be as straight and long, but has tissue or
+    air beyond it; a flat panel with scatter and a C-arm's processing can leave a shutter
+    too faint to count as opaque."""
+    f = _SHUTTER_SCALE
+    small = cv2.resize(A.astype(np.float32), None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
+    seen = cv2.resize(lit.astype(np.uint8), small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    seen = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    small = cv2.GaussianBlur(small, (0, 0), 1.0)
+    b = _SHUTTER_BAND
+    mask = np.zeros(A.shape, bool)
+    lines: list[tuple[int, float, float]] = []
+    for side, (x, m) in enumerate(zip(_side_views(small), _side_views(seen))):
+        h, w = x.shape
+        # Column sums of attenuation and of the seen field, for band means at any row.
+        csum = np.vstack([np.zeros((1, w)), np.cumsum(np.where(m, x, 0.0), axis=0)])
+        cnt = np.vstack([np.zeros((1, w)), np.cumsum(m, axis=0)])
+        rows = np.arange(b, int(_SHUTTER_REACH * h))
+        slopes = np.tan(np.radians(_SHUTTER_ANGLES_DEG))
+        u = np.arange(w)
+        v = np.rint(rows[None, :, None] + slopes[:, None, None] * (u - w / 2.0)[None, None, :]).astype(int)
+        ok = (v >= b) & (v <= h - b)
+        v = np.clip(v, b, h - b)
+        out_n, in_n = cnt[v, u] - cnt[v - b, u], cnt[v + b, u] - cnt[v, u]
+        full = ok & (out_n == b) & (in_n == b)
+        inner = (csum[v + b, u] - csum[v, u]) / b
+        step = (csum[v, u] - csum[v - b, u]) / b - inner
+        # All the way out to the side, nothing is less attenuating than a blade's step over
+        # the field (a bone's shaft, as straight and long, has tissue or air beyond it).
+        least_out = np.minimum.accumulate(np.where(m, x, np.inf), axis=0)[v - 1, u]
+        up = (step > _SHUTTER_STEP) & (least_out - inner > 0.5 * _SHUTTER_STEP)
+        across = full.sum(axis=2)
+        rising = (full & up).sum(axis=2) / np.maximum(across, 1)
+        # Across the field: the seen columns at that row, of those seen anywhere.
+        span = across / max(int(m.any(axis=0).sum()), 1)
+        good = (rising >= _SHUTTER_ALONG) & (span >= _SHUTTER_SPAN)
+        if not good.any():
+            continue
+        # The innermost such edge: a shutter's penumbra steps over several rows.
+        k, r = np.unravel_index(np.argmax(np.where(good, rows[None, :], -1)), good.shape)
+        offset, slope = f * (rows[r] + 0.5) - 0.5, float(slopes[k])
+        hh, ww = [A.shape, A.shape[::-1]][side // 2]
+        vv, uu = np.mgrid[0:hh, 0:ww]
+        # Out to the inner end of the compared band: the penumbra is no field.
+        mask |= _from_side_view(vv < offset + f * b + slope * (uu - ww / 2.0), side)
+        lines.append((side, float(offset), slope))
+    return mask, lines
