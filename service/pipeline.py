@@ -469,6 +469,9 @@ class Pipeline:
                    else plane_polygon(outcome.plane.point, outcome.plane.normal))
         run.recorder.final([o.view_id for o in run.observations], outcome.T_cam_tibia,
                            outcome.T_tibia_pin, _made(run.plan).pin_mesh, polygon, outcome.residual_rms)
+        if outcome.bone_edges_sought:  # what they were sought in, for `replay --resolve` (~1.8 MB a view)
+            run.recorder.bone_edge_searches({o.view_id: o.bone_edge_search.to_json()
+                                             for o in run.observations if o.bone_edge_search is not None})
 
     def _results(self, run: _Run) -> None:
         """The validated result, then the SR, sent once on disk, then the SCs, sent once all
@@ -524,9 +527,7 @@ class Pipeline:
         return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
-                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json(),
-                           "bone_edge_search": (None if o.bone_edge_search is None
-                                                else o.bone_edge_search.to_json())}
+                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
                           for o in observations],
                 "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],
                             "T_tibia_pin": [T.to_json() for T in initial.T_tibia_pin],

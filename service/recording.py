@@ -17,6 +17,8 @@ Entity paths (the 3D scene is the tibia frame, ``world``):
 - ``result/ctr_deg``, ``result/str_deg`` and ``result/document`` — angles and the JSON result
 - ``inputs/solver`` — the exact solver inputs (JSON, float64) from which ``slamtka replay
   --resolve`` re-runs the solve
+- ``inputs/bone_edge_searches`` — where the solve sought the bone's edges near the model,
+  each view's search (its frame's smoothed attenuation, compressed), for the same re-run
 
 Everything a viewer shows comes with an exact JSON twin where reproduction needs it, because
 rerun stores geometry as float32.
@@ -183,6 +185,11 @@ class CaseRecorder:
 
     def solver_inputs(self, doc: dict) -> None:
         self._json("inputs/solver", doc)
+
+    def bone_edge_searches(self, doc: dict) -> None:
+        """Each view's bone edge search (view id -> its JSON), when the solve sought the
+        bone's edges near the model: the frames' evidence a re-run needs."""
+        self._json("inputs/bone_edge_searches", doc)
 
     # -- the solve ------------------------------------------------------------------------
     def iteration(self, stage: str, info: IterationInfo) -> None:

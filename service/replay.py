@@ -168,7 +168,7 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
                              dict(v.get("notes", {})),
                              VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None,
-                             _recorded_edge_search(rec, v.get("bone_edge_search")))
+                             _recorded_edge_search(rec, v["view_id"]))
              for v in inputs["views"]]
     solver = (rec.result or {}).get("solver") or {}
     if solver.get("bone_edges") == "sought near the model" and any(
@@ -186,9 +186,11 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
     return {"status": "measured", "ctr_deg": ctr_deg, "str_deg": str_deg}, notes
 
 
-def _recorded_edge_search(rec: Recording, doc: dict | None) -> BoneEdgeSearch | None:
-    """A view's bone edge search as the run recorded it, through the run's calibration (the
-    search maps the solver's undistorted outline to the frame's raw pixels)."""
+def _recorded_edge_search(rec: Recording, view_id: str) -> BoneEdgeSearch | None:
+    """A view's bone edge search as the run recorded it (only runs that sought the bone's
+    edges record them), through the run's calibration (the search maps the solver's
+    undistorted outline to the frame's raw pixels)."""
+    doc = (rec.documents.get("inputs/bone_edge_searches") or {}).get(view_id)
     if doc is None:
         return None
     calibration = calibration_from_document(rec.documents.get("calibration") or {},

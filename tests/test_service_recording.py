@@ -2,14 +2,21 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import cv2
 import numpy as np
 import pytest
 from service_testing import result_document, small_frame
 
 from slamtka.service.recording import CaseRecorder
-from slamtka.service.replay import check_recording, read_recording
+from slamtka.service.replay import _recorded_edge_search, check_recording, read_recording
 from slamtka.service.results import MeasurementResult
 from slamtka.sim.bone_phantom import phantom_plan
+from slamtka.sim.simulate import default_camera
+from slamtka.sim.xray import default_distortion
+from slamtka.solver.imaging.calibration_file import calibration_document
+from slamtka.solver.imaging.edges import BoneEdgeSearch
 from slamtka.solver.optimizer import IterationInfo, State
 from slamtka.solver.variables import pin_key, view_key
 
@@ -81,3 +88,26 @@ def test_unreadable_recordings_are_refused_clearly(tmp_path):
     junk.write_bytes(b"not a recording at all")
     with pytest.raises(ValueError, match="cannot be read as a rerun recording"):
         read_recording(junk)
+
+
+def test_a_runs_bone_edge_searches_read_back_through_its_calibration(tmp_path):
+    """A run that sought the bone's edges near the model records each view's search, and
+    the replay rebuilds it through the recorded calibration: the same edges are found."""
+    camera = default_camera()
+    distortion = default_distortion(camera)
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float32)
+    disk = np.clip(1.0 - np.hypot(u - 500.0, v - 520.0) / 200.0, 0.0, None) ** 0.5
+    search = replace(BoneEdgeSearch.of_frame(disk.astype(np.float32), np.ones(disk.shape, bool), 0.001, 0.0),
+                     distort=distortion.distort, undistort=distortion.undistort)
+    path = tmp_path / "recording.rrd"
+    rec = CaseRecorder(path, "case-x", "run-y")
+    rec.calibration(calibration_document(camera, "carm-1", "test", distortion))
+    rec.bone_edge_searches({"view1": search.to_json()})
+    rec.close()
+    again = _recorded_edge_search(read_recording(path), "view1")
+    assert again is not None and _recorded_edge_search(read_recording(path), "view2") is None
+    footprint = np.zeros(disk.shape, np.uint8)
+    cv2.circle(footprint, (500, 520), 205, 1, -1)
+    edges, share = search(footprint, 12.0)
+    edges_again, share_again = again(footprint, 12.0)
+    assert len(edges) > 100 and np.array_equal(edges, edges_again) and share == share_again
