@@ -463,7 +463,8 @@ class Pipeline:
                                   _SOLVER_CONFIG, callback=run.recorder.iteration)
 
     def _plane_and_angles(self, run: _Run) -> None:
-        """The solved poses, pins and plane into the recording (the solver measured them)."""
+        """The solved poses, pins and plane into the recording (the solver measured them),
+        and, where the solve sought the bone's edges, what it sought them in."""
         outcome = _made(run.outcome)
         polygon = (None if outcome.plane is None
                    else plane_polygon(outcome.plane.point, outcome.plane.normal))

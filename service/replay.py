@@ -34,7 +34,7 @@ from slamtka.solver.plan import DEFAULT_SEGMENTATION_SD_MM, Plan, Target
 from slamtka.solver.slam import InitialGuess, SolverConfig, solve_joint
 from slamtka.solver.surface import Surface, mesh_digest
 
-__all__ = ["Recording", "read_recording", "check_recording", "resolve_recording",
+__all__ = ["Recording", "read_recording", "check_recording", "recorded_edge_searches", "resolve_recording",
            "add_replay_parser"]
 
 ANGLE_TOLERANCE_DEG = 1e-6  # recomputing the plane from the same poses
@@ -164,11 +164,12 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
     if repr(SolverConfig()) != inputs["solver_config"]:
         notes.append("this software's solver configuration differs from the recorded one")
     camera = Camera.from_json(inputs["camera"])
+    searches = recorded_edge_searches(rec)
     views = [ViewObservation(v["view_id"], camera,
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
                              dict(v.get("notes", {})),
                              VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None,
-                             _recorded_edge_search(rec, v["view_id"]))
+                             searches.get(v["view_id"]))
              for v in inputs["views"]]
     solver = (rec.result or {}).get("solver") or {}
     if solver.get("bone_edges") == "sought near the model" and any(
@@ -186,16 +187,17 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
     return {"status": "measured", "ctr_deg": ctr_deg, "str_deg": str_deg}, notes
 
 
-def _recorded_edge_search(rec: Recording, view_id: str) -> BoneEdgeSearch | None:
-    """A view's bone edge search as the run recorded it (only runs that sought the bone's
-    edges record them), through the run's calibration (the search maps the solver's
-    undistorted outline to the frame's raw pixels)."""
-    doc = (rec.documents.get("inputs/bone_edge_searches") or {}).get(view_id)
-    if doc is None:
-        return None
+def recorded_edge_searches(rec: Recording) -> dict[str, BoneEdgeSearch]:
+    """Each view's bone edge search as the run recorded it (only runs that sought the
+    bone's edges record them), by view id, through the run's calibration (the search maps
+    the solver's undistorted outline to the frame's raw pixels)."""
+    docs = rec.documents.get("inputs/bone_edge_searches") or {}
+    if not docs:
+        return {}
     calibration = calibration_from_document(rec.documents.get("calibration") or {},
                                             "the recorded calibration")
-    return BoneEdgeSearch.from_json(doc, calibration.distort_points, calibration.undistort_points)
+    return {view_id: BoneEdgeSearch.from_json(doc, calibration.distort_points, calibration.undistort_points)
+            for view_id, doc in docs.items()}
 
 
 def _summary(rec: Recording) -> str:

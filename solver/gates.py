@@ -18,8 +18,9 @@ from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagno
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
-__all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal", "sought_edges_missing",
-           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_overlap", "view_separation"]
+__all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
+           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_overlap",
+           "sought_edges_missing", "view_separation"]
 
 
 class Why(StrEnum):

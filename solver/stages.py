@@ -142,14 +142,10 @@ class StageRunner:
                                        thinned=stage.thinned)
             state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
                                self._options(stage), f"{stage.name} x{scale:g}")
-        p = self.problem = self._attributed(stage, state)
-        astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
-                                      c.gates.max_coarse_bone_median_px, c.gates)
+        p, astray = self._judged_bone(stage, state)
         if astray is not None and any(view.bone_edge_search for view in p.views):
             state = self._bone_edges_sought(stage, state)
-            p = self.problem = self._attributed(stage, state)
-            astray = gates.outline_misfit(outline_fits(p, state, stage.labels),
-                                          c.gates.max_coarse_bone_median_px, c.gates)
+            p, astray = self._judged_bone(stage, state)
         if astray is not None:
             # Lost already: the caller may restart from a global search at once.
             final = list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight()))
@@ -161,6 +157,14 @@ class StageRunner:
         for view_id in self.renamed:
             log.info("view %s: the pin labels were swapped to match the other views", view_id)
         return StagesResult(state, result.terms, result.report), False
+
+    def _judged_bone(self, stage: Stage, state: State) -> tuple[JointProblem, str | None]:
+        """The problem without the foreign edges the views on the bone show, and why the
+        bone still lies off its contour in some view (None: it does not)."""
+        p = self.problem = self._attributed(stage, state)
+        limits = p.config.gates
+        return p, gates.outline_misfit(outline_fits(p, state, stage.labels),
+                                       limits.max_coarse_bone_median_px, limits)
 
     def _bone_edges_sought(self, stage: Stage, state: State) -> State:
         """The bone's edges sought again in each frame near the model's outline, from as

@@ -10,7 +10,7 @@ import pytest
 from service_testing import result_document, small_frame
 
 from slamtka.service.recording import CaseRecorder
-from slamtka.service.replay import _recorded_edge_search, check_recording, read_recording
+from slamtka.service.replay import check_recording, read_recording, recorded_edge_searches
 from slamtka.service.results import MeasurementResult
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.simulate import default_camera
@@ -104,8 +104,9 @@ def test_a_runs_bone_edge_searches_read_back_through_its_calibration(tmp_path):
     rec.calibration(calibration_document(camera, "carm-1", "test", distortion))
     rec.bone_edge_searches({"view1": search.to_json()})
     rec.close()
-    again = _recorded_edge_search(read_recording(path), "view1")
-    assert again is not None and _recorded_edge_search(read_recording(path), "view2") is None
+    searches = recorded_edge_searches(read_recording(path))
+    assert list(searches) == ["view1"]
+    again = searches["view1"]
     footprint = np.zeros(disk.shape, np.uint8)
     cv2.circle(footprint, (500, 520), 205, 1, -1)
     edges, share = search(footprint, 12.0)
