@@ -528,7 +528,8 @@ class Pipeline:
         return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
-                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json()}
+                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json(),
+                           "pins_opaque": o.pins_opaque}
                           for o in observations],
                 "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],
                             "T_tibia_pin": [T.to_json() for T in initial.T_tibia_pin],

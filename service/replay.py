@@ -169,7 +169,7 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
                              dict(v.get("notes", {})),
                              VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None,
-                             searches.get(v["view_id"]))
+                             searches.get(v["view_id"]), bool(v.get("pins_opaque", False)))
              for v in inputs["views"]]
     solver = (rec.result or {}).get("solver") or {}
     if solver.get("bone_edges") == "sought near the model" and any(

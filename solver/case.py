@@ -72,6 +72,14 @@ def _pose(path: Path, what: str, rows) -> Pose:
         raise ValueError(f"{path}: {what}: not a valid pose ({exc})") from None
 
 
+def _flag(path: Path, view_id: str, entry: dict, key: str) -> bool:
+    """An optional true/false of a view's contours entry (false when absent)."""
+    value = entry.get(key, False)
+    if not isinstance(value, bool):
+        raise ValueError(f"{path}: view {view_id!r}: {key!r} must be true or false, not {value!r}")
+    return value
+
+
 def _contour(path: Path, view_id: str, label: str, value, camera: Camera) -> np.ndarray:
     """A contour's pixels as a float array; numbers only, within the image (with a margin)."""
     try:
@@ -123,7 +131,8 @@ def write_case(folder: Path, case_id: str, plan: Plan, views: list[ViewObservati
         calibration_file.calibration_document(camera, calibration_id, "C-arm intrinsics"),
         indent=2))
     contours = {"format": CONTOURS_FORMAT, "units": "px", "views": [
-        {"view_id": v.view_id, **{label: np.round(v.contours[label], 3).tolist() for label in LABELS}}
+        {"view_id": v.view_id, **{label: np.round(v.contours[label], 3).tolist() for label in LABELS},
+         **({"pins_opaque": True} if v.pins_opaque else {})}
         for v in views]}
     (folder / "contours.json").write_text(json.dumps(contours))
     (folder / "initial.json").write_text(json.dumps({
@@ -168,14 +177,15 @@ def load_case(folder: Path) -> CaseFolder:
             raise ValueError(f"view {view_id!r} has contours but no initial pose in initial.json")
         if any(v.view_id == view_id for v in views):
             raise ValueError(f"{contours_path}: view {view_id!r} is given twice")
-        unknown = sorted(set(entry) - {"view_id", *LABELS})
+        unknown = sorted(set(entry) - {"view_id", "pins_opaque", *LABELS})
         if unknown:
             raise ValueError(f"{contours_path}: view {view_id!r}: unknown contour labels {unknown} "
                              f"(the labels are {', '.join(LABELS)})")
         pixels = {label: _contour(contours_path, view_id, label, entry.get(label, []), camera)
                   for label in LABELS}
         try:
-            views.append(ViewObservation(view_id, camera, pixels))
+            views.append(ViewObservation(view_id, camera, pixels,
+                                         pins_opaque=_flag(contours_path, view_id, entry, "pins_opaque")))
         except ValueError as exc:
             raise ValueError(f"{contours_path}: {exc}") from None
         poses.append(_pose(initial_path, f"view {view_id!r}", initial_views[view_id]))

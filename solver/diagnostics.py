@@ -67,6 +67,10 @@ class PinOverlap:
 
     view_id: str
     share: float
+    # Both pins' axes lie along one image line and overlap, in a frame where steel is
+    # opaque: each pin's inner end hides in the other's shadow, so the view cannot say how
+    # far apart the pins are (their ends, seen in two views, would).
+    ends_hidden: bool = False
 
 
 @dataclass(frozen=True)
@@ -138,10 +142,13 @@ def outline_fits(problem: JointProblem, state: State, labels: tuple[str, ...]
     return tuple(fits)
 
 
-def _segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distances of points ``p`` (N, 2) from the segment ``a``-``b``."""
+def _segment_distances(p: np.ndarray, a: np.ndarray, b: np.ndarray, whole_line: bool = False
+                       ) -> np.ndarray:
+    """Distances of points ``p`` (N, 2) from the segment ``a``-``b`` (or its whole line)."""
     ab = b - a
-    t = np.clip((p - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    t = (p - a) @ ab / max(float(ab @ ab), 1e-12)
+    if not whole_line:
+        t = np.clip(t, 0.0, 1.0)
     return row_norms(p - (a + t[:, None] * ab))
 
 
@@ -161,7 +168,9 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
         reach = radius * view.camera.fx / min(float(np.min(p[:, 2])) for p in in_camera)
         share = max(float(np.mean(_segment_distances(axes[i], axes[j][0], axes[j][-1]) <= reach))
                     for i, j in ((0, 1), (1, 0)))
-        overlaps.append(PinOverlap(view.view_id, share))
+        in_line = all(bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True)
+                                  <= reach)) for i, j in ((0, 1), (1, 0)))
+        overlaps.append(PinOverlap(view.view_id, share, view.pins_opaque and in_line and share > 0))
     return tuple(overlaps)
 
 

@@ -168,6 +168,16 @@ class ViewObservation:
     # Searches the frame again for the bone's edges where the model says they are (None:
     # only the contours given, e.g. drawn by hand).
     bone_edge_search: EdgeSearch | None = None
+    # The pin contours are outlines of the pins' shadows in a radiograph, where steel hides
+    # what lies behind it: where the two shadows touch, neither pin's edges can be seen
+    # inside the other's (False: contours drawn or simulated pin by pin).
+    pins_opaque: bool = False
+    # Set where the two pins' shadows lie on each other: the pins' edge pixels as extracted
+    # (both labels), which the fit shares out between the pins (JointProblem.
+    # with_pin_edges_shared), and where each pin's own edge could be seen (outside the
+    # other's shadow). None: the extraction's names and contours stand.
+    pin_edges: np.ndarray | None = None
+    pins_visible: dict[str, VisibleRegion] | None = None
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -186,7 +196,8 @@ class ViewObservation:
     def with_contours(self, **contours: np.ndarray) -> ViewObservation:
         """This view with some labels' contours replaced (and their distance maps afresh)."""
         return ViewObservation(self.view_id, self.camera, {**self.contours, **contours},
-                               self.notes, self.bone_visible, self.bone_edge_search)
+                               self.notes, self.bone_visible, self.bone_edge_search,
+                               self.pins_opaque, self.pin_edges, self.pins_visible)
 
     def distance_map(self, label: str) -> DistanceMap:
         if label not in self._distance_maps:

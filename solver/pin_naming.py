@@ -61,7 +61,10 @@ Solved = TypeVar("Solved", bound=_Solved)
 
 def swap_pins(view: ViewObservation) -> ViewObservation:
     """The view with its two pins' names swapped."""
-    return view.with_contours(pin1=view.contours["pin2"], pin2=view.contours["pin1"])
+    swapped = view.with_contours(pin1=view.contours["pin2"], pin2=view.contours["pin1"])
+    if view.pins_visible is not None:
+        swapped.pins_visible = {"pin1": view.pins_visible["pin2"], "pin2": view.pins_visible["pin1"]}
+    return swapped
 
 
 def naming_score(views: list[ViewObservation], T_cam_tibia: list[Pose] | tuple[Pose, ...],

@@ -4,14 +4,15 @@ contour pixels, and the energy terms built from them (docs/solver.md)."""
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.kernels import nearest_points
-from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation
+from slamtka.solver.observations import LABELS, PIN_LABELS, ViewObservation, VisibleRegion
 from slamtka.solver.optimizer import NoiseModel, RobustLoss, Term
 from slamtka.solver.pin_naming import naming_clear, naming_score, swap_pays, swap_pins
 from slamtka.solver.plan import Plan, RigidModel
@@ -63,6 +64,17 @@ def thin_contour(pixels: np.ndarray, spacing_px: float) -> np.ndarray:
     _, first = np.unique(cells[:, 0] * (cells[:, 1].max() + 1) + cells[:, 1], return_index=True)
     return pixels[np.sort(first)]
 
+
+
+def _grown(mask: np.ndarray, by_px: float) -> np.ndarray:
+    """The uint8 ``mask`` grown by ``by_px`` (a square of side 2 by_px + 1), as bools."""
+    side = 2 * int(np.ceil(by_px)) + 1
+    return cv2.dilate(mask, np.ones((side, side), np.uint8)) > 0
+
+
+def _within(a: np.ndarray, b: np.ndarray, gap_px: float) -> bool:
+    """Whether two uint8 masks come within ``gap_px`` of each other (or overlap)."""
+    return bool(np.any(_grown(a, gap_px) & (b > 0)))
 
 
 class EdgeGroup(NamedTuple):
@@ -151,6 +163,64 @@ class JointProblem:
         views = [view.with_contours(bone=self.bone_edges_sought(poses, k, reach_px)[0])
                  if view.bone_edge_search is not None else view for k, view in enumerate(self.views)]
         return JointProblem(self.plan, views, self.config, self.naming_fixed, edges_sought=True)
+
+    def with_pin_edges_shared(self, poses: Mapping[PoseKey, Pose]) -> tuple[JointProblem, list[str]]:
+        """The problem with the pin edges of each view where the two pins' shadows lie on
+        each other (``SamplingConfig.shared_pin_shadow_gap_px``) shared out by the fit, and
+        the ids of those views. Only views whose pins are opaque
+        (:attr:`ViewObservation.pins_opaque`) are shared out: contours drawn pin by pin
+        name each pin's edges already.
+
+        Seen one behind the other, the pins cast one bar, and the extraction's split of its
+        edges into two pins is a guess (an idealised case was split 60 px wrong, a third of
+        the realism study's refusals were of such views). Yet the bar still says where both
+        pins are: each of its edges is one pin's or the other's. So each edge pixel (as
+        extracted, both names pooled) goes to the pin whose outline at ``poses`` passes
+        nearer, none to either where the two pass about as near; a pin's outline under the
+        other pin's shadow has no edge to lie on and is not charged. A view shared once
+        stays shared, its edges shared out again at each call."""
+        gap_px = self.config.sampling.shared_pin_shadow_gap_px
+        if gap_px is None:
+            return self, []
+        views, shared = list(self.views), list[str]()
+        for k, view in enumerate(self.views):
+            if not view.pins_opaque:
+                continue
+            shadows = [self.pin.contour.footprint(self.T_cam_body(poses, k, label), view.camera, 1)
+                       for label in PIN_LABELS]
+            if view.pin_edges is None and not _within(shadows[0], shadows[1], gap_px):
+                continue
+            edges = view.pin_edges
+            if edges is None:
+                edges = np.vstack([view.contours[label] for label in PIN_LABELS])
+            views[k] = replace(view.with_contours(**self._shared_out(k, edges, poses)), pin_edges=edges,
+                               pins_visible=self._outside_other_shadow(shadows))
+            shared.append(view.view_id)
+        if not shared:
+            return self, []
+        return JointProblem(self.plan, views, self.config, self.naming_fixed, self.edges_sought), shared
+
+    def _shared_out(self, k: int, edges: np.ndarray, poses: Mapping[PoseKey, Pose]) -> dict[str, np.ndarray]:
+        """View ``k``'s pin edge pixels by the pin whose outline at ``poses`` is nearer."""
+        distances = []
+        for label in PIN_LABELS:
+            outline = self._outline_px(k, label, poses)
+            if len(outline) == 0 or len(edges) == 0:
+                distances.append(np.full(len(edges), np.inf))
+                continue
+            gap = outline[nearest_points(outline, np.ascontiguousarray(edges, dtype=float), 8.0)] - edges
+            distances.append(np.hypot(gap[:, 0], gap[:, 1]))
+        to_first, to_second = distances
+        clear = np.abs(to_first - to_second) >= self.config.sampling.pin_edge_ambiguity_px
+        return {"pin1": edges[clear & (to_first < to_second)], "pin2": edges[clear & (to_second < to_first)]}
+
+    @staticmethod
+    def _outside_other_shadow(shadows: list[np.ndarray]) -> dict[str, VisibleRegion]:
+        """Where each pin's own edge can be seen: outside the other pin's shadow (uint8
+        masks), grown by a pixel (an outline along the other's edge is that edge's as much
+        as its own)."""
+        grown = [_grown(shadow, 1.0) for shadow in shadows]
+        return {"pin1": VisibleRegion(~grown[1], 1), "pin2": VisibleRegion(~grown[0], 1)}
 
     def _outline_px(self, k: int, label: str, poses: Mapping[PoseKey, Pose]) -> np.ndarray:
         """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
@@ -264,7 +334,8 @@ class JointProblem:
                     NoiseModel(c.noise.sigma_px, loss, weight),
                     c.sampling.silhouette_spacing_px * thinning,
                     outer_only=(label == "bone"), freeze_outline=freeze_outline,
-                    visible=view.bone_visible if label == "bone" else None))
+                    visible=view.bone_visible if label == "bone" else
+                    (view.pins_visible or {}).get(label)))
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:

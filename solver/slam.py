@@ -78,6 +78,7 @@ class SolveOutcome:
     why: Why | None = None  # the kind of refusal, when not measured (a stable code)
     renamed: list[str] = field(default_factory=list)  # views whose pin names were swapped
     unclear_naming: list[str] = field(default_factory=list)  # views whose pin names were open
+    pins_shared: list[str] = field(default_factory=list)  # views whose pin edges the fit shared out
 
     @property
     def angles_deg(self) -> tuple[float, float] | None:
@@ -212,6 +213,7 @@ def _solve_from(problem: JointProblem, initial: InitialGuess, poses: Mapping[Pos
     outcome.edge_point_counts = attributed.named(attributed.edge_point_counts(result.terms))
     outcome.bone_edges_sought = attributed.edges_sought
     outcome.renamed, outcome.unclear_naming = runner.renamed, runner.unclear_naming
+    outcome.pins_shared = runner.pins_shared
     return outcome
 
 
@@ -239,6 +241,9 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         if overlapping is not None:
             why, misfit = Why.PINS_INDISTINCT, f"{overlapping} ({misfit})"
         return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
+    in_line = gates.pins_in_line(d)
+    if in_line is not None:
+        return _refused(problem, Why.PINS_INDISTINCT, in_line, state, report, rms, start)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)

@@ -16,6 +16,7 @@ import numpy as np
 from slamtka.solver import gates
 from slamtka.solver.diagnostics import outline_fits
 from slamtka.solver.measurement import fit_resection_plane
+from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.optimizer import (
     IterationInfo,
     LMOptions,
@@ -81,6 +82,7 @@ class StageRunner:
         self.iterations, self.seconds = 0, 0.0
         self.renamed: list[str] = []  # views whose pin names were swapped
         self.unclear_naming: list[str] = []  # views whose pin names the sightings leave open
+        self.pins_shared: list[str] = []  # views whose pin edges the fit shares out
 
     def lm(self, terms: list[Term], state: State, held: dict[PoseKey, np.ndarray], options: LMOptions,
            name: str, until_settled: bool = False) -> tuple[State, SolveReport]:
@@ -179,8 +181,24 @@ class StageRunner:
                                    self._options(stage), f"{stage.name} sought {reach_px:g} x{scale:g}")
         return state
 
+    def _share_pin_edges(self, stage: Stage, state: State) -> None:
+        """Where the pins' shadows lie on each other at ``state``, their edges shared out
+        by the fit (:meth:`JointProblem.with_pin_edges_shared`). Which pin such a view
+        calls which then follows from the other views, so its names are no longer open."""
+        if not set(stage.labels) & set(PIN_LABELS):
+            return
+        self.problem, shared = self.problem.with_pin_edges_shared(state.poses)
+        if not shared:
+            return
+        self.pins_shared = sorted(set(self.pins_shared) | set(shared))
+        distinct = len(self.problem.views) - len(self.pins_shared)
+        self.unclear_naming = ([] if distinct < 2 else
+                               [view for view in self.unclear_naming if view not in self.pins_shared])
+
     def _silhouettes(self, stage: Stage, result: StagesResult) -> StagesResult:
         """E_mp of the stage's models (only the final energy, without a budget)."""
+        if stage.budget is not None:
+            self._share_pin_edges(stage, result.state)
         terms = self.problem.silhouette_terms(stage.labels, 1.0, self._tight(),
                                               thinned=stage.thinned) + self._odometry(stage)
         if stage.budget is None:
@@ -211,10 +229,12 @@ class StageRunner:
         """The joint energy with edge points seated where their rays graze the models; after
         ``joint_seated_iterations`` seated again at the poses reached, and again while a
         stage still turns the poses by more than ``reseat_turn_deg``."""
-        p, c = self.problem, self.problem.config.schedule
+        c = self.problem.config.schedule
         options = replace(self._options(stage), max_iterations=c.joint_seated_iterations)
         name, seatings, state = stage.name, 0, result.state
         while True:
+            self._share_pin_edges(stage, state)
+            p = self.problem
             points, groups = p.seated_points(state.poses, labels=stage.labels)
             terms = p.edge_terms(points, groups) + p.silhouette_terms(
                 stage.labels, p.config.noise.w_mp, RobustLoss("cauchy", 3.0),

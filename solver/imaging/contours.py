@@ -162,7 +162,7 @@ class ExtractedContours:
                               for label, points in self.as_dict().items()},
             dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
-                self.bone_edge_search, distort=distort, undistort=undistort))
+                self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True)
 
 
 # -- pins ----------------------------------------------------------------------------------
