@@ -67,9 +67,9 @@ class PinOverlap:
 
     view_id: str
     share: float
-    # Both pins' axes lie along one image line and overlap, in a frame where steel is
-    # opaque: each pin's inner end hides in the other's shadow, so the view cannot say how
-    # far apart the pins are (their ends, seen in two views, would).
+    # Both pins' axes lie along one image line and overlap, in a view whose pin edges the
+    # fit shared out: each pin's inner end hides in the other's shadow, and nothing of the
+    # extraction's split says where, so the view cannot say how far apart the pins are.
     ends_hidden: bool = False
 
 
@@ -170,7 +170,7 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
                     for i, j in ((0, 1), (1, 0)))
         in_line = all(bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True)
                                   <= reach)) for i, j in ((0, 1), (1, 0)))
-        overlaps.append(PinOverlap(view.view_id, share, view.pins_opaque and in_line and share > 0))
+        overlaps.append(PinOverlap(view.view_id, share, view.pin_edges is not None and in_line and share > 0))
     return tuple(overlaps)
 
 

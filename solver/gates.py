@@ -19,7 +19,7 @@ from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
 __all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
-           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_overlap",
+           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_in_line", "pins_overlap",
            "sought_edges_missing", "view_separation"]
 
 

@@ -179,16 +179,12 @@ class JointProblem:
         nearer, none to either where the two pass about as near; a pin's outline under the
         other pin's shadow has no edge to lie on and is not charged. A view shared once
         stays shared, its edges shared out again at each call."""
-        gap_px = self.config.sampling.shared_pin_shadow_gap_px
-        if gap_px is None:
+        if not self.config.sampling.share_pin_edges:
             return self, []
         views, shared = list(self.views), list[str]()
         for k, view in enumerate(self.views):
-            if not view.pins_opaque:
-                continue
-            shadows = [self.pin.contour.footprint(self.T_cam_body(poses, k, label), view.camera, 1)
-                       for label in PIN_LABELS]
-            if view.pin_edges is None and not _within(shadows[0], shadows[1], gap_px):
+            shadows = self._pin_shadows(k, poses) if view.pins_opaque else None
+            if shadows is None or (view.pin_edges is None and not self._touching(shadows)):
                 continue
             edges = view.pin_edges
             if edges is None:
@@ -199,6 +195,20 @@ class JointProblem:
         if not shared:
             return self, []
         return JointProblem(self.plan, views, self.config, self.naming_fixed, self.edges_sought), shared
+
+    def pins_touch(self, poses: Mapping[PoseKey, Pose]) -> bool:
+        """Whether the two pins' shadows touch at ``poses`` in some view of opaque pins
+        (within ``SamplingConfig.shared_pin_shadow_gap_px``)."""
+        return any(view.pins_opaque and self._touching(self._pin_shadows(k, poses))
+                   for k, view in enumerate(self.views))
+
+    def _pin_shadows(self, k: int, poses: Mapping[PoseKey, Pose]) -> list[np.ndarray]:
+        """Each pin's projection in view ``k`` at ``poses`` (uint8 masks, full resolution)."""
+        return [self.pin.contour.footprint(self.T_cam_body(poses, k, label), self.views[k].camera, 1)
+                for label in PIN_LABELS]
+
+    def _touching(self, shadows: list[np.ndarray]) -> bool:
+        return _within(shadows[0], shadows[1], self.config.sampling.shared_pin_shadow_gap_px)
 
     def _shared_out(self, k: int, edges: np.ndarray, poses: Mapping[PoseKey, Pose]) -> dict[str, np.ndarray]:
         """View ``k``'s pin edge pixels by the pin whose outline at ``poses`` is nearer."""

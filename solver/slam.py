@@ -24,7 +24,7 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -107,7 +107,39 @@ def solve_joint(
     not_usable = gates.input_refusal(input_diagnostics(problem, initial), config.gates)
     if not_usable is not None:
         return _refused(problem, *not_usable, None, None, {}, start, poses)
-    outcome = _solve_restarting(problem, initial, callback, start)
+    outcome = _solve_named(problem, initial, callback, start)
+    if (outcome.why not in _PIN_REFUSALS or outcome.unclear_naming or outcome.state is None
+            or not problem.pins_touch(outcome.state.poses)):
+        return outcome
+    # Refused over the pins where their shadows touch in a radiograph: the extraction's split
+    # of their one bar may be what does not fit. Solved again from the views found, with the
+    # bar's edges shared out by the fit (JointProblem.with_pin_edges_shared); the first
+    # refusal stands unless that measures. Not where the first solve left the pins' names
+    # open: sharing says nothing about which pin is which across views (so retried, a
+    # headed-pins case refused for its names was measured 14 deg off).
+    sharing = replace(problem.config, sampling=replace(problem.config.sampling, share_pin_edges=True))
+    shared = _solve_named(JointProblem(plan, views, sharing), initial, callback, start,
+                          named_poses(outcome.T_cam_tibia, initial.T_tibia_pin))
+    log.info("pins touching in views %s: shared out by the fit, %s", shared.pins_shared, shared.status)
+    chosen = shared if shared.status == "measured" else outcome
+    chosen.iterations = outcome.iterations + shared.iterations
+    chosen.seconds = time.perf_counter() - start
+    return chosen
+
+
+# Refusals over how the pins fit, which the pins' shadows touching may explain.
+_PIN_REFUSALS = (Why.PINS_INDISTINCT, Why.GATE_FAILED, Why.DEGENERATE)
+
+
+def _solve_named(problem: JointProblem, initial: InitialGuess,
+                 callback: Callable[[str, IterationInfo], None] | None, start: float,
+                 poses: Mapping[PoseKey, Pose] | None = None) -> SolveOutcome:
+    """A solve from ``poses`` (None: from the encoders' guess, restarting from the global
+    searches while it goes astray), and, where the pins' names were left open, the solve
+    under the other naming that settles them (:mod:`solver.pin_naming`)."""
+    plan, views, config = problem.plan, problem.views, problem.config
+    outcome = (_solve_restarting(problem, initial, callback, start) if poses is None
+               else _solve_from(problem, initial, poses, callback, start))
     if outcome.status != "measured" or not outcome.unclear_naming:
         return outcome
     # The pins' names were left open by their sightings at the bone's poses. At the poses

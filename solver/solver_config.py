@@ -39,10 +39,12 @@ class SamplingConfig:
     coarse_thinning: float = 2.0  # coarse stages sample this many times more sparsely
     max_ray_miss_mm: float = 3.0  # a bone pixel whose ray misses the bone by more: no edge point
     foreign_edge_px: float | None = 15.0  # bone pixels this far from the outline: another body's
-    # Where the two pins' shadows come this close (px) in a view, its pin edges are shared
-    # out between the pins by the fit (None: never); an edge whose distances to the two
-    # pins' outlines differ by less (px) is neither's.
-    shared_pin_shadow_gap_px: float | None = 2.0
+    # Whether the pin edges of a view where the two pins' shadows come within this many px
+    # are shared out between the pins by the fit (set by solve_joint when a solve refused
+    # over the pins is tried again); an edge whose distances to the two pins' outlines
+    # differ by less (px) is neither's.
+    share_pin_edges: bool = False
+    shared_pin_shadow_gap_px: float = 2.0
     pin_edge_ambiguity_px: float = 1.0
 
 

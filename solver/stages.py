@@ -183,17 +183,13 @@ class StageRunner:
 
     def _share_pin_edges(self, stage: Stage, state: State) -> None:
         """Where the pins' shadows lie on each other at ``state``, their edges shared out
-        by the fit (:meth:`JointProblem.with_pin_edges_shared`). Which pin such a view
-        calls which then follows from the other views, so its names are no longer open."""
+        by the fit (:meth:`JointProblem.with_pin_edges_shared`)."""
         if not set(stage.labels) & set(PIN_LABELS):
             return
         self.problem, shared = self.problem.with_pin_edges_shared(state.poses)
         if not shared:
             return
         self.pins_shared = sorted(set(self.pins_shared) | set(shared))
-        distinct = len(self.problem.views) - len(self.pins_shared)
-        self.unclear_naming = ([] if distinct < 2 else
-                               [view for view in self.unclear_naming if view not in self.pins_shared])
 
     def _silhouettes(self, stage: Stage, result: StagesResult) -> StagesResult:
         """E_mp of the stage's models (only the final energy, without a budget)."""
