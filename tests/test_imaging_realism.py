@@ -249,9 +249,10 @@ def _labelled(radiograph, found) -> bool:
     return True
 
 
-def _retractors_pins(plan, scene, seed: int, view: int):
-    """A retractors frame and what is extracted from it with the plan's pins at the true pose."""
-    room = OperatingRoom.only("retractors")
+def _retractors_pins(plan, scene, seed: int, view: int, room: OperatingRoom | None = None):
+    """A retractors frame (or one of ``room``) and what is extracted from it with the plan's
+    pins at the true pose."""
+    room = room or OperatingRoom.only("retractors")
     frame = _room_frames(plan, scene, room, seed)[1][view]
     _, truth = _room_case(plan, room, seed)
     shadows = plan.pin_shadows(frame.radiograph.camera, truth.truth_T_cam_tibia[view],
@@ -282,6 +283,26 @@ def test_pins_in_line_beside_a_blades_fold_or_across_three_blades_are_found(phan
     2: the pins cross three blades and their shadow was smaller than the blades' strips,
     so it was never tried as the one that holds both pins."""
     frame, found = _retractors_pins(phantom_plan, scene, seed, view)
+    assert _labelled(frame.radiograph, found)
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_parallel_pins_seen_nearly_end_on_converge_and_are_paired(phantom_plan, scene):
+    """Operating-room seed 8, view 1 (7 deg): the pins, seen along ~20 deg of their axis,
+    are short headed shadows 36 deg apart in direction, pointing at their vanishing point.
+    No pair was parallel enough, and a retractor blade was split as the pins. Shadows that
+    converge on one vanishing point, foreshortened alike, are the pair."""
+    frame, found = _retractors_pins(phantom_plan, scene, 8, 0, OperatingRoom.everything(MESHES))
+    assert found.diagnostics["pins_overlap"] == "apart"
+    assert _labelled(frame.radiograph, found)
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_blade_pieces_that_converge_by_chance_are_not_taken_for_the_pins(phantom_plan, scene):
+    """Operating-room seed 17, view 2: two pieces of retractor blades, pin-wide, 33 deg
+    apart and foreshortened alike, but 1.7 times as far from where their axes meet: pins
+    side by side at one depth are as far from their vanishing point. The pins are found."""
+    frame, found = _retractors_pins(phantom_plan, scene, 17, 1, OperatingRoom.everything(MESHES))
     assert _labelled(frame.radiograph, found)
 
 

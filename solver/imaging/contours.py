@@ -342,10 +342,17 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
             angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
             ratio = max(widths_px[i], widths_px[j]) / max(min(widths_px[i], widths_px[j]), 1e-9)
-            if (angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO
+            if (ratio > _PAIR_MAX_WIDTH_RATIO
                     or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
-            cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if angle <= _PAIR_MAX_ANGLE_DEG:
+                bent = angle / _PAIR_MAX_ANGLE_DEG
+            else:
+                converging = _converging(fitted[i][0], fitted[j][0])
+                if converging is None:
+                    continue
+                bent = 1.0 + converging
+            cost = bent + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
             if where is not None:
                 a, b = fitted[i][0].centre, fitted[j][0].centre
                 off = min(np.linalg.norm(a - where[0]) + np.linalg.norm(b - where[1]),
@@ -354,6 +361,43 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             if cost < best_cost:
                 best, best_cost = (i, j), cost
     return best
+
+
+# Parallel pins seen nearly end-on converge in projection towards their vanishing point:
+# seen along 10-30 deg of their axis, two pins 50 mm apart are 30-40 deg from parallel on
+# the frame (operating-room seeds 8, 24: short shadows with heads). Such a pair is taken
+# when the two shadows point at one vanishing point beyond both, within this angle, and
+# are foreshortened alike: a shadow's length over its distance to the vanishing point is
+# l cos(a) / (z + l cos(a)) for a pin of length l at depth z seen at angle a to its axis,
+# small and the same for both pins of a block, side by side at one depth, so their
+# distances to it are alike too. Two blades' pieces were paired by the shares alone
+# (operating-room seeds 17 and 23: distances 1.7 and 2.5 times each other; the pins of
+# seed 8: 1.04).
+_CONVERGING_MAX_ANGLE_DEG = 45.0
+_CONVERGING_MAX_SHARE = 0.35  # a shadow's length over its distance to the vanishing point
+_CONVERGING_MAX_RATIO = 1.3  # between the two pins' shares, and their distances
+
+
+def _converging(a: _Bar, b: _Bar) -> float | None:
+    """How unlike two parallel pins' shadows converging on their vanishing point the bars
+    are (0 alike, 1 at the limit), or None when they cannot be such a pair."""
+    cos = float(a.direction @ b.direction)
+    if np.degrees(np.arccos(np.clip(abs(cos), 0.0, 1.0))) > _CONVERGING_MAX_ANGLE_DEG:
+        return None
+    # Where the axes meet: a.centre + s a.direction = b.centre + t b.direction.
+    s, t = np.linalg.solve(np.column_stack([a.direction, -b.direction]), b.centre - a.centre)
+    if abs(s) <= a.half_length or abs(t) <= b.half_length:
+        return None  # the axes cross inside a shadow: no vanishing point beyond both
+    to_a, to_b = -s * a.direction, -t * b.direction  # from the vanishing point to each centre
+    if float(to_a @ to_b) <= 0.0:
+        return None  # the shadows lie on either side of it: they diverge
+    distances = np.abs([s, t])
+    shares = 2.0 * np.array([a.half_length, b.half_length]) / distances
+    unlike = float(max(np.log(ratios.max() / ratios.min()) for ratios in (shares, distances))
+                   / np.log(_CONVERGING_MAX_RATIO))
+    if shares.max() > _CONVERGING_MAX_SHARE or unlike > 1.0:
+        return None
+    return unlike
 
 
 def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
