@@ -223,6 +223,18 @@ def test_pins_seen_one_behind_the_other_are_refused_naming_the_view():
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_pins_in_line_that_make_one_bar_are_refused_saying_so():
+    """Seed 5 of the surgeon's views: view 2 (-76 deg) sees the pins one behind the other,
+    their edges a few px apart: one bar a little wider than a pin, which no split makes
+    two pins of. The refusal said no steel bar of a pin's shape was found; it says why."""
+    row = realism_case(("phantom", "views", 5, (1,), str(SHARED_DATA)))
+    result = row["levels"][1]
+    assert result["status"] == "refused"
+    assert ("view view2: pin1 not told from the other pin (one bar as wide as both: the pins "
+            "lie one behind the other)") in result["reason"]
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_a_dark_band_beside_a_pin_is_not_taken_for_its_edge(phantom_plan, scene):
     """Seed 0 of the processing scene, view 1: the sharpened plateau leaves a dark band
     40 px above pin 2, as steel-like as a pin; its outline was given to pin 2 (1163 edge

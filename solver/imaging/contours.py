@@ -595,24 +595,30 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
 
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
                widths: _PinWidths, config: ContourConfig
-               ) -> tuple[list[_Bar], str, np.ndarray] | None:
+               ) -> tuple[list[_Bar], str, np.ndarray] | bool:
     """When no two shadows are the pins, the one that holds both: of the candidates, largest
     first, the first that splits into two bars no wider than a pin on average (a strip of a
     retractor blade does not; a split's bars come out uneven where pin heads add steps to
-    its sides), with its bars, how they overlap and its edge points; None if none does.
-    All are tried: two pins in line across three blades are a smaller shadow than the
-    blades' strips (retractors seed 22, view 2)."""
+    its sides), with its bars, how they overlap and its edge points. All are tried: two
+    pins in line across three blades are a smaller shadow than the blades' strips
+    (retractors seed 22, view 2). If none splits, whether one came out as a single bar
+    wider than a pin but no wider than two side by side: pins seen one behind the other,
+    their edges offset by a few px, that cannot be told apart (views seed 5 view 2,
+    operating-room seed 13 view 2)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
+    in_line = False
     for shadow in shadows:
         own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
-        if np.mean([_edge_width(bar, edges[mine]) for bar in bars]) <= widths.most:
+        width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
+        if width <= widths.most:
             return bars, overlap, edges[mine]
-    return None
+        in_line |= overlap in ("coincident", "unresolved") and width <= widths.union_most
+    return in_line
 
 
 def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
@@ -673,9 +679,9 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
         split = _split_one(labels, shadows, edges, normals, widths, config)
-        if split is None:
+        if isinstance(split, bool):
             empty = np.zeros((0, 2))
-            return [empty, empty], mask, {"pins_found": 0}
+            return [empty, empty], mask, {"pins_found": 0, "pins_in_line": split}
         bars, overlap, edges = split
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
@@ -867,8 +873,11 @@ _PROCESSED_RIM_HALO_PX = 40.0
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
-def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray) -> str:
+def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray, in_line: bool) -> str:
     """Why pin ``index`` (0, 1) has no edges in a frame, in words for the refusal."""
+    if in_line:
+        return ("not told from the other pin (one bar as wide as both: the pins lie one "
+                "behind the other)")
     if broad.any():
         if expected is None:
             return "not found (hidden by metal?)"
@@ -1002,7 +1011,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     bone_edges_visible = bone_visible & (to_air > 3.0)
     bone = kept_in(bone, bone_edges_visible)
     pin1, pin2 = kept_in(pin1, pins_ok), kept_in(pin2, pins_ok)
-    missing = {label: _why_missing(k, expected_pins, broad)
+    missing = {label: _why_missing(k, expected_pins, broad, pin_info.get("pins_in_line", False))
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
