@@ -223,6 +223,18 @@ def test_pins_seen_one_behind_the_other_are_refused_naming_the_view():
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_pins_in_line_that_make_one_bar_are_refused_saying_so():
+    """Seed 5 of the surgeon's views: view 2 (-76 deg) sees the pins one behind the other,
+    their edges a few px apart: one bar a little wider than a pin, which no split makes
+    two pins of. The refusal said no steel bar of a pin's shape was found; it says why."""
+    row = realism_case(("phantom", "views", 5, (1,), str(SHARED_DATA)))
+    result = row["levels"][1]
+    assert result["status"] == "refused"
+    assert ("view view2: pin1 not told from the other pin (one bar as wide as both: the pins "
+            "lie one behind the other)") in result["reason"]
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_a_dark_band_beside_a_pin_is_not_taken_for_its_edge(phantom_plan, scene):
     """Seed 0 of the processing scene, view 1: the sharpened plateau leaves a dark band
     40 px above pin 2, as steel-like as a pin; its outline was given to pin 2 (1163 edge
@@ -249,9 +261,10 @@ def _labelled(radiograph, found) -> bool:
     return True
 
 
-def _retractors_pins(plan, scene, seed: int, view: int):
-    """A retractors frame and what is extracted from it with the plan's pins at the true pose."""
-    room = OperatingRoom.only("retractors")
+def _retractors_pins(plan, scene, seed: int, view: int, room: OperatingRoom | None = None):
+    """A retractors frame (or one of ``room``) and what is extracted from it with the plan's
+    pins at the true pose."""
+    room = room or OperatingRoom.only("retractors")
     frame = _room_frames(plan, scene, room, seed)[1][view]
     _, truth = _room_case(plan, room, seed)
     shadows = plan.pin_shadows(frame.radiograph.camera, truth.truth_T_cam_tibia[view],
@@ -282,6 +295,26 @@ def test_pins_in_line_beside_a_blades_fold_or_across_three_blades_are_found(phan
     2: the pins cross three blades and their shadow was smaller than the blades' strips,
     so it was never tried as the one that holds both pins."""
     frame, found = _retractors_pins(phantom_plan, scene, seed, view)
+    assert _labelled(frame.radiograph, found)
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_parallel_pins_seen_nearly_end_on_converge_and_are_paired(phantom_plan, scene):
+    """Operating-room seed 8, view 1 (7 deg): the pins, seen along ~20 deg of their axis,
+    are short headed shadows 36 deg apart in direction, pointing at their vanishing point.
+    No pair was parallel enough, and a retractor blade was split as the pins. Shadows that
+    converge on one vanishing point, foreshortened alike, are the pair."""
+    frame, found = _retractors_pins(phantom_plan, scene, 8, 0, OperatingRoom.everything(MESHES))
+    assert found.diagnostics["pins_overlap"] == "apart"
+    assert _labelled(frame.radiograph, found)
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_blade_pieces_that_converge_by_chance_are_not_taken_for_the_pins(phantom_plan, scene):
+    """Operating-room seed 17, view 2: two pieces of retractor blades, pin-wide, 33 deg
+    apart and foreshortened alike, but 1.7 times as far from where their axes meet: pins
+    side by side at one depth are as far from their vanishing point. The pins are found."""
+    frame, found = _retractors_pins(phantom_plan, scene, 17, 1, OperatingRoom.everything(MESHES))
     assert _labelled(frame.radiograph, found)
 
 

@@ -64,7 +64,8 @@ def test_destination_filters_object_kinds(tmp_path):
 
 def test_a_down_destination_is_retried_with_backoff_and_survives_a_restart(tmp_path):
     port = free_port()
-    sender, audit = _sender(tmp_path, port)
+    # A backoff longer than a failed association takes on a loaded machine (0.2 s was not).
+    sender, audit = _sender(tmp_path, port, retry_initial_s=2.0, retry_max_s=4.0)
     objects = _objects(tmp_path, 1)
     sender.enqueue(objects, "case-1", "run-1")
     assert sender.run_once() == 0
@@ -78,7 +79,7 @@ def test_a_down_destination_is_retried_with_backoff_and_survives_a_restart(tmp_p
     sink = ResultCollector(port=port)
     restarted, audit = _sender(tmp_path, port)
     try:
-        assert restarted.run_once(now=time.time() + 1.0) == 1
+        assert restarted.run_once(now=time.time() + 5.0) == 1
         assert [ds.SOPInstanceUID for _, ds in sink.wait(lambda ds: True, 5.0)] == [
             objects[0].sop_instance_uid]
         events = [e["event"] for e in read_audit(audit.path)]

@@ -342,10 +342,17 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             cos = abs(float(fitted[i][0].direction @ fitted[j][0].direction))
             angle = float(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
             ratio = max(widths_px[i], widths_px[j]) / max(min(widths_px[i], widths_px[j]), 1e-9)
-            if (angle > _PAIR_MAX_ANGLE_DEG or ratio > _PAIR_MAX_WIDTH_RATIO
+            if (ratio > _PAIR_MAX_WIDTH_RATIO
                     or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
-            cost = angle / _PAIR_MAX_ANGLE_DEG + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
+            if angle <= _PAIR_MAX_ANGLE_DEG:
+                bent = angle / _PAIR_MAX_ANGLE_DEG
+            else:
+                converging = _converging(fitted[i][0], fitted[j][0])
+                if converging is None:
+                    continue
+                bent = 1.0 + converging
+            cost = bent + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
             if where is not None:
                 a, b = fitted[i][0].centre, fitted[j][0].centre
                 off = min(np.linalg.norm(a - where[0]) + np.linalg.norm(b - where[1]),
@@ -354,6 +361,43 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             if cost < best_cost:
                 best, best_cost = (i, j), cost
     return best
+
+
+# Parallel pins seen nearly end-on converge in projection towards their vanishing point:
+# seen along 10-30 deg of their axis, two pins 50 mm apart are 30-40 deg from parallel on
+# the frame (operating-room seeds 8, 24: short shadows with heads). Such a pair is taken
+# when the two shadows point at one vanishing point beyond both, within this angle, and
+# are foreshortened alike: a shadow's length over its distance to the vanishing point is
+# l cos(a) / (z + l cos(a)) for a pin of length l at depth z seen at angle a to its axis,
+# small and the same for both pins of a block, side by side at one depth, so their
+# distances to it are alike too. Two blades' pieces were paired by the shares alone
+# (operating-room seeds 17 and 23: distances 1.7 and 2.5 times each other; the pins of
+# seed 8: 1.04).
+_CONVERGING_MAX_ANGLE_DEG = 45.0
+_CONVERGING_MAX_SHARE = 0.35  # a shadow's length over its distance to the vanishing point
+_CONVERGING_MAX_RATIO = 1.3  # between the two pins' shares, and their distances
+
+
+def _converging(a: _Bar, b: _Bar) -> float | None:
+    """How unlike two parallel pins' shadows converging on their vanishing point the bars
+    are (0 alike, 1 at the limit), or None when they cannot be such a pair."""
+    cos = float(a.direction @ b.direction)
+    if np.degrees(np.arccos(np.clip(abs(cos), 0.0, 1.0))) > _CONVERGING_MAX_ANGLE_DEG:
+        return None
+    # Where the axes meet: a.centre + s a.direction = b.centre + t b.direction.
+    s, t = np.linalg.solve(np.column_stack([a.direction, -b.direction]), b.centre - a.centre)
+    if abs(s) <= a.half_length or abs(t) <= b.half_length:
+        return None  # the axes cross inside a shadow: no vanishing point beyond both
+    to_a, to_b = -s * a.direction, -t * b.direction  # from the vanishing point to each centre
+    if float(to_a @ to_b) <= 0.0:
+        return None  # the shadows lie on either side of it: they diverge
+    distances = np.abs([s, t])
+    shares = 2.0 * np.array([a.half_length, b.half_length]) / distances
+    unlike = float(max(np.log(ratios.max() / ratios.min()) for ratios in (shares, distances))
+                   / np.log(_CONVERGING_MAX_RATIO))
+    if shares.max() > _CONVERGING_MAX_SHARE or unlike > 1.0:
+        return None
+    return unlike
 
 
 def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
@@ -551,24 +595,30 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
 
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
                widths: _PinWidths, config: ContourConfig
-               ) -> tuple[list[_Bar], str, np.ndarray] | None:
+               ) -> tuple[list[_Bar], str, np.ndarray] | bool:
     """When no two shadows are the pins, the one that holds both: of the candidates, largest
     first, the first that splits into two bars no wider than a pin on average (a strip of a
     retractor blade does not; a split's bars come out uneven where pin heads add steps to
-    its sides), with its bars, how they overlap and its edge points; None if none does.
-    All are tried: two pins in line across three blades are a smaller shadow than the
-    blades' strips (retractors seed 22, view 2)."""
+    its sides), with its bars, how they overlap and its edge points. All are tried: two
+    pins in line across three blades are a smaller shadow than the blades' strips
+    (retractors seed 22, view 2). If none splits, whether one came out as a single bar
+    wider than a pin but no wider than two side by side: pins seen one behind the other,
+    their edges offset by a few px, that cannot be told apart (views seed 5 view 2,
+    operating-room seed 13 view 2)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
+    in_line = False
     for shadow in shadows:
         own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
-        if np.mean([_edge_width(bar, edges[mine]) for bar in bars]) <= widths.most:
+        width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
+        if width <= widths.most:
             return bars, overlap, edges[mine]
-    return None
+        in_line |= overlap in ("coincident", "unresolved") and width <= widths.union_most
+    return in_line
 
 
 def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
@@ -629,9 +679,9 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     else:
         split = _split_one(labels, shadows, edges, normals, widths, config)
-        if split is None:
+        if isinstance(split, bool):
             empty = np.zeros((0, 2))
-            return [empty, empty], mask, {"pins_found": 0}
+            return [empty, empty], mask, {"pins_found": 0, "pins_in_line": split}
         bars, overlap, edges = split
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
@@ -823,8 +873,11 @@ _PROCESSED_RIM_HALO_PX = 40.0
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
-def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray) -> str:
+def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray, in_line: bool) -> str:
     """Why pin ``index`` (0, 1) has no edges in a frame, in words for the refusal."""
+    if in_line:
+        return ("not told from the other pin (one bar as wide as both: the pins lie one "
+                "behind the other)")
     if broad.any():
         if expected is None:
             return "not found (hidden by metal?)"
@@ -958,7 +1011,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     bone_edges_visible = bone_visible & (to_air > 3.0)
     bone = kept_in(bone, bone_edges_visible)
     pin1, pin2 = kept_in(pin1, pins_ok), kept_in(pin2, pins_ok)
-    missing = {label: _why_missing(k, expected_pins, broad)
+    missing = {label: _why_missing(k, expected_pins, broad, pin_info.get("pins_in_line", False))
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
