@@ -337,27 +337,32 @@ def collimator_shutters(A: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, lis
     b = _SHUTTER_BAND
     mask = np.zeros(A.shape, bool)
     lines: list[tuple[int, float, float]] = []
+    slopes = np.tan(np.radians(_SHUTTER_ANGLES_DEG))
     for side, (x, m) in enumerate(zip(_side_views(small), _side_views(seen))):
         h, w = x.shape
         # Column sums of attenuation and of the seen field, for band means at any row.
         csum = np.vstack([np.zeros((1, w)), np.cumsum(np.where(m, x, 0.0), axis=0)])
         cnt = np.vstack([np.zeros((1, w)), np.cumsum(m, axis=0)])
+        # Whether a band pair fits in the field and steps up outwards depends on its row and
+        # column only: judged once per pixel, then read along every candidate line.
+        at = np.arange(b, h - b + 1)
+        out_n, in_n = cnt[at] - cnt[at - b], cnt[at + b] - cnt[at]
+        inner = (csum[at + b] - csum[at]) / b
+        step = (csum[at] - csum[at - b]) / b - inner
+        # All the way out to the side, nothing is less attenuating than a blade's step over
+        # the field (a bone's shaft, as straight and long, has tissue or air beyond it).
+        least_out = np.minimum.accumulate(np.where(m, x, np.inf), axis=0)[at - 1]
+        up = (step > _SHUTTER_STEP) & (least_out - inner > 0.5 * _SHUTTER_STEP)
+        fits = (out_n == b) & (in_n == b)
+        code = np.zeros((h, w), np.uint8)
+        code[at] = fits.astype(np.uint8) + 2 * (fits & up).astype(np.uint8)
         rows = np.arange(b, int(_SHUTTER_REACH * h))
-        slopes = np.tan(np.radians(_SHUTTER_ANGLES_DEG))
         u = np.arange(w)
         v = np.rint(rows[None, :, None] + slopes[:, None, None] * (u - w / 2.0)[None, None, :]).astype(int)
         ok = (v >= b) & (v <= h - b)
-        v = np.clip(v, b, h - b)
-        out_n, in_n = cnt[v, u] - cnt[v - b, u], cnt[v + b, u] - cnt[v, u]
-        full = ok & (out_n == b) & (in_n == b)
-        inner = (csum[v + b, u] - csum[v, u]) / b
-        step = (csum[v, u] - csum[v - b, u]) / b - inner
-        # All the way out to the side, nothing is less attenuating than a blade's step over
-        # the field (a bone's shaft, as straight and long, has tissue or air beyond it).
-        least_out = np.minimum.accumulate(np.where(m, x, np.inf), axis=0)[v - 1, u]
-        up = (step > _SHUTTER_STEP) & (least_out - inner > 0.5 * _SHUTTER_STEP)
-        across = full.sum(axis=2)
-        rising = (full & up).sum(axis=2) / np.maximum(across, 1)
+        line = np.where(ok, code.ravel()[np.clip(v, b, h - b) * w + u], 0)
+        across = (line > 0).sum(axis=2)
+        rising = (line > 1).sum(axis=2) / np.maximum(across, 1)
         # Across the field: the seen columns at that row, of those seen anywhere.
         span = across / max(int(m.any(axis=0).sum()), 1)
         good = (rising >= _SHUTTER_ALONG) & (span >= _SHUTTER_SPAN)
@@ -367,7 +372,7 @@ def collimator_shutters(A: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, lis
         k, r = np.unravel_index(np.argmax(np.where(good, rows[None, :], -1)), good.shape)
         offset, slope = f * (rows[r] + 0.5) - 0.5, float(slopes[k])
         hh, ww = [A.shape, A.shape[::-1]][side // 2]
-        vv, uu = np.mgrid[0:hh, 0:ww]
+        vv, uu = np.arange(hh)[:, None], np.arange(ww)[None, :]
         # Out to the inner end of the compared band: the penumbra is no field.
         mask |= _from_side_view(vv < offset + f * b + slope * (uu - ww / 2.0), side)
         lines.append((side, float(offset), slope))
