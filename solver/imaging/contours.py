@@ -847,11 +847,31 @@ def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np
     # the nearest clear pixel is further than its radius, then grown back by it. The same
     # mask as cv2.morphologyEx with a 91 px ellipse but for a few rim pixels, in a fifth
     # of its time (it was a third of an extraction).
+    # Both transforms are exact, so each is taken only over the box that can matter: the
+    # opaque pixels' with a clear rim, then the eroded pixels' grown by the radius.
     radius = int(config.pin_width_px[1])
-    inner = cv2.distanceTransform(opaque, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius
-    grown = cv2.distanceTransform((~inner).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    broad = (grown <= radius).astype(np.uint8)
+    inner = np.zeros_like(valid)
+    box = _box(opaque, 1)
+    if box is None:
+        return inner
+    inner[box] = cv2.distanceTransform(opaque[box], cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius
+    broad = np.zeros(valid.shape, np.uint8)
+    box = _box(inner, radius + 1)
+    if box is None:
+        return inner
+    grown = cv2.distanceTransform((~inner[box]).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    broad[box] = grown <= radius
     return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
+
+
+def _box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The bounding box of a mask grown by ``margin`` px (within the frame), None if empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
 def _border(broad: np.ndarray) -> np.ndarray:
