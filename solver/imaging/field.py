@@ -52,7 +52,8 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     radii = np.linalg.norm(a - centres, axis=1)
     # Score candidates on a subsample of the boundary to keep this vectorised and small.
     sample = points[:: max(1, len(points) // 400)]
-    residual = np.abs(np.linalg.norm(sample[None] - centres[:, None], axis=2) - radii[:, None])
+    du, dv = sample[None, :, 0] - centres[:, 0, None], sample[None, :, 1] - centres[:, 1, None]
+    residual = np.abs(np.sqrt(du * du + dv * dv) - radii[:, None])
     best = int(np.argmax((residual < 1.5).sum(axis=1)))
     off = np.linalg.norm(points - centres[best], axis=1) - radii[best]
     keep = np.abs(off) < 1.5
@@ -91,7 +92,9 @@ def _circular_field(image: np.ndarray, span: float) -> tuple[np.ndarray, float, 
     corner_labels = corner_labels[corner_labels > 0]
     if len(corner_labels) == 0:
         return None
-    region = fill_holes(~np.isin(labels, corner_labels)).astype(np.uint8)
+    at_corner = np.zeros(count, bool)
+    at_corner[corner_labels] = True
+    region = fill_holes(~at_corner[labels]).astype(np.uint8)
     boundary = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
     if not boundary:
         return None
