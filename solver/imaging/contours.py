@@ -708,8 +708,9 @@ def _not_tissue(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np
     if not tissue.any():
         raise ContourError("no soft tissue next to the skin is visible; cannot separate the bone")
     excess = smooth - _tissue_surface(smooth, tissue & ~skin if (tissue & ~skin).any() else tissue, config)
-    sizes = np.bincount(labels.ravel(), minlength=count)
-    level = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
+    flat = labels.ravel().astype(np.intp)  # as np.bincount takes them: converted once, not thrice
+    sizes = np.bincount(flat, minlength=count)
+    level = np.bincount(flat, weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
     # A region cut off from the skin is tissue when its level over that surface is tissue's.
     enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (level < config.bone_threshold)
     enclosed_tissue[0] = False
@@ -717,7 +718,7 @@ def _not_tissue(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np
     # tibia and fibula, whose edges the model's outer outline does not follow, is left to the
     # level), no higher than the tissue by the skin (a tibia's interior is) and below every
     # bone around it. The last, costliest test only where the others leave a region.
-    raw_level = np.bincount(labels.ravel(), weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
+    raw_level = np.bincount(flat, weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
     skin_tissue = smooth[tissue][::7]
     tissue_top = min(float(np.percentile(skin_tissue, _TISSUE_TOP_PERCENTILE)),
                      float(np.median(skin_tissue)) + _CUT_OFF_EXCESS * config.bone_threshold)
