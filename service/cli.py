@@ -89,7 +89,13 @@ def main(argv: list[str] | None = None) -> int:
     program = argv is None
     argv = sys.argv[1:] if argv is None else argv
     os.umask(PRIVATE_UMASK)
-    args = build_parser(_chosen_command(argv)).parse_args(argv)
+    command = _chosen_command(argv)
+    if program and command == "serve":
+        # One thread for OpenBLAS (read when numpy loads, which the command's import does):
+        # its workers spin on the second core that the contour extraction and the other
+        # requests use, and a run's small products waited for it under load.
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    args = build_parser(command).parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -62,6 +63,7 @@ from slamtka.solver.imaging.field import (
     FieldError,
     attenuation,
     collimator_shutters,
+    components,
     field_of_view,
     fill_holes,
     remove_overlays,
@@ -730,9 +732,10 @@ def _distance_to(mask: np.ndarray) -> np.ndarray:
     return cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
 
 
-def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarray,
-          pins: np.ndarray, grad, config: ContourConfig) -> tuple[np.ndarray, dict]:
-    """Sub-pixel outer edges of tibia with fibula, and diagnostics.
+def _not_tissue(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarray,
+                grad, config: ContourConfig) -> np.ndarray:
+    """Where the field is neither air nor soft tissue: bone (and the pins, which are sought
+    apart and meanwhile).
 
     Soft tissue has no strong edges except at the skin: the tissue region is what can be
     reached from the skin without crossing one. Regions cut off from the skin by bone (the
@@ -755,8 +758,9 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     if not tissue.any():
         raise ContourError("no soft tissue next to the skin is visible; cannot separate the bone")
     excess = smooth - _tissue_surface(smooth, tissue & ~skin if (tissue & ~skin).any() else tissue, config)
-    sizes = np.bincount(labels.ravel(), minlength=count)
-    level = np.bincount(labels.ravel(), weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
+    flat = labels.ravel().astype(np.intp)  # as np.bincount takes them: converted once, not thrice
+    sizes = np.bincount(flat, minlength=count)
+    level = np.bincount(flat, weights=excess.ravel(), minlength=count) / np.maximum(sizes, 1)
     # A region cut off from the skin is tissue when its level over that surface is tissue's.
     enclosed_tissue = ~seeded & (sizes >= config.min_bone_area_px // 10) & (level < config.bone_threshold)
     enclosed_tissue[0] = False
@@ -764,7 +768,7 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
     # tibia and fibula, whose edges the model's outer outline does not follow, is left to the
     # level), no higher than the tissue by the skin (a tibia's interior is) and below every
     # bone around it. The last, costliest test only where the others leave a region.
-    raw_level = np.bincount(labels.ravel(), weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
+    raw_level = np.bincount(flat, weights=smooth.ravel(), minlength=count) / np.maximum(sizes, 1)
     skin_tissue = smooth[tissue][::7]
     tissue_top = min(float(np.percentile(skin_tissue, _TISSUE_TOP_PERCENTILE)),
                      float(np.median(skin_tissue)) + _CUT_OFF_EXCESS * config.bone_threshold)
@@ -776,13 +780,19 @@ def _bone(smooth: np.ndarray, valid: np.ndarray, air: np.ndarray, skin: np.ndarr
                                              config.bone_threshold) >= _LOWER_SHARE
         enclosed_tissue |= cut_off
     tissue |= enclosed_tissue[labels]
-    bone = valid & ~air & ~tissue
-    bone = (bone | pins) & valid
+    return valid & ~air & ~tissue
+
+
+def _bone(not_tissue: np.ndarray, valid: np.ndarray, pins: np.ndarray, grad,
+          config: ContourConfig) -> tuple[np.ndarray, dict]:
+    """Sub-pixel outer edges of tibia with fibula (the outline of what is neither air nor
+    tissue, with the pins' shadows over it), and diagnostics."""
+    bone = (not_tissue | pins) & valid
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     bone = cv2.morphologyEx(bone.astype(np.uint8), cv2.MORPH_OPEN, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(bone, connectivity=8)
+    count, labels, areas = components(bone, 8)
     big = np.zeros(count, bool)
-    big[1:] = stats[1:, cv2.CC_STAT_AREA] >= config.min_bone_area_px
+    big[1:] = areas[1:] >= config.min_bone_area_px
     bone = big[labels]
     # Holes smaller than the minimum bone area are noise inside bone, not gaps between bones.
     bone = fill_holes(bone, config.min_bone_area_px)
@@ -900,11 +910,31 @@ def _broad_opaque(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np
     # the nearest clear pixel is further than its radius, then grown back by it. The same
     # mask as cv2.morphologyEx with a 91 px ellipse but for a few rim pixels, in a fifth
     # of its time (it was a third of an extraction).
+    # Both transforms are exact, so each is taken only over the box that can matter: the
+    # opaque pixels' with a clear rim, then the eroded pixels' grown by the radius.
     radius = int(config.pin_width_px[1])
-    inner = cv2.distanceTransform(opaque, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius
-    grown = cv2.distanceTransform((~inner).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    broad = (grown <= radius).astype(np.uint8)
+    inner = np.zeros_like(valid)
+    box = _box(opaque, 1)
+    if box is None:
+        return inner
+    inner[box] = cv2.distanceTransform(opaque[box], cv2.DIST_L2, cv2.DIST_MASK_PRECISE) > radius
+    broad = np.zeros(valid.shape, np.uint8)
+    box = _box(inner, radius + 1)
+    if box is None:
+        return inner
+    grown = cv2.distanceTransform((~inner[box]).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    broad[box] = grown <= radius
     return cv2.dilate(broad, np.ones((5, 5), np.uint8)) > 0
+
+
+def _box(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    """The bounding box of a mask grown by ``margin`` px (within the frame), None if empty."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
 
 
 def _border(broad: np.ndarray) -> np.ndarray:
@@ -989,22 +1019,26 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     # A pin is sought over broad metal too (a blade is no pin but a pin may cross it).
     A_field = np.where(field, A, fill).astype(np.float32)
     A = np.where(valid, A, fill).astype(np.float32)
-    smoothing = _smoothing_for_noise(A, valid, config)
-    smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
-    grad = gradient(smooth)
-    coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
-    air = valid & (coarse < np.percentile(coarse[::2, ::2][valid[::2, ::2]], 0.5) + config.air_margin)
-    to_air = _distance_to(air)
-
-    (pin1, pin2), pins, pin_info = _pins(A_field, field, broad & field, config, expected_pins,
-                                         expected_pin_width_px, expected_pin_length_px)
-    bone, bone_info = _bone(smooth, valid, air, to_air <= config.skin_margin_px, pins, grad, config)
-    margin = config.fov_margin_px
-    rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
-    if radius is None:
-        rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
-    pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
-    rim_ok &= _distance_to(broad | shutters) > margin
+    # The pins are sought on the second core while the bone's tissue is told apart here:
+    # both are mostly OpenCV and numpy, which release the GIL.
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pins") as pool:
+        found_pins = pool.submit(_pins, A_field, field, broad & field, config, expected_pins,
+                                 expected_pin_width_px, expected_pin_length_px)
+        smoothing = _smoothing_for_noise(A, valid, config)
+        smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
+        grad = gradient(smooth)
+        coarse = cv2.GaussianBlur(A, (0, 0), 3.0)
+        air = valid & (coarse < np.percentile(coarse[::2, ::2][valid[::2, ::2]], 0.5) + config.air_margin)
+        to_air = _distance_to(air)
+        not_tissue = _not_tissue(smooth, valid, air, to_air <= config.skin_margin_px, grad, config)
+        margin = config.fov_margin_px
+        rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
+        if radius is None:
+            rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+        pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
+        rim_ok &= _distance_to(broad | shutters) > margin
+        (pin1, pin2), pins, pin_info = found_pins.result()
+    bone, bone_info = _bone(not_tissue, valid, pins, grad, config)
     # Where the frame shows a bone's edge: in the exposed field, clear of metal, text and
     # the pins' shadows (air shows it too: a bone there would stand out).
     bone_visible = valid & rim_ok & (_distance_to(pins) > config.pin_exclusion_px)

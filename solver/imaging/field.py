@@ -22,8 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["FieldError", "field_of_view", "attenuation", "collimator_shutters", "fill_holes", "polarity_sign",
-           "remove_overlays"]
+__all__ = ["FieldError", "field_of_view", "attenuation", "collimator_shutters", "components", "fill_holes",
+           "polarity_sign", "remove_overlays"]
 
 
 class FieldError(ValueError):
@@ -52,7 +52,8 @@ def _fit_circle(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     radii = np.linalg.norm(a - centres, axis=1)
     # Score candidates on a subsample of the boundary to keep this vectorised and small.
     sample = points[:: max(1, len(points) // 400)]
-    residual = np.abs(np.linalg.norm(sample[None] - centres[:, None], axis=2) - radii[:, None])
+    du, dv = sample[None, :, 0] - centres[:, 0, None], sample[None, :, 1] - centres[:, 1, None]
+    residual = np.abs(np.sqrt(du * du + dv * dv) - radii[:, None])
     best = int(np.argmax((residual < 1.5).sum(axis=1)))
     off = np.linalg.norm(points - centres[best], axis=1) - radii[best]
     keep = np.abs(off) < 1.5
@@ -91,7 +92,9 @@ def _circular_field(image: np.ndarray, span: float) -> tuple[np.ndarray, float, 
     corner_labels = corner_labels[corner_labels > 0]
     if len(corner_labels) == 0:
         return None
-    region = fill_holes(~np.isin(labels, corner_labels)).astype(np.uint8)
+    at_corner = np.zeros(count, bool)
+    at_corner[corner_labels] = True
+    region = fill_holes(~at_corner[labels]).astype(np.uint8)
     boundary = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0]
     if not boundary:
         return None
@@ -266,12 +269,12 @@ def remove_overlays(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # A stroke is a few dozen pixels at least (single pixels at the extreme are noise),
         # and stands sharply off what is around it; steel saturating the detector is at the
         # extreme too, but its surroundings (the rest of its shadow) are nearly as extreme.
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(thin.astype(np.uint8), connectivity=8)
+        count, labels, areas = components(thin, 8)
         around = cv2.dilate(labels.astype(np.float32), np.ones((5, 5), np.uint8)).astype(np.int32)
         ring = (around > 0) & (labels == 0)
         contrast = np.bincount(around[ring], weights=np.abs(data[ring] - level), minlength=count).astype(float)
         contrast /= np.maximum(np.bincount(around[ring], minlength=count), 1) * max(span, 1e-9)
-        stroke = (stats[:, cv2.CC_STAT_AREA] >= _STROKE_MIN_PX) & (contrast > _STROKE_CONTRAST)
+        stroke = (areas >= _STROKE_MIN_PX) & (contrast > _STROKE_CONTRAST)
         stroke[0] = False
         mask |= stroke[labels]
     if not mask.any():
@@ -285,14 +288,23 @@ def attenuation(image: np.ndarray, outside: float, sign: int) -> np.ndarray:
     return -np.log(np.maximum(signal, 1.0))
 
 
+def components(mask: np.ndarray, connectivity: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """Connected components of a mask: their count (with the background, label 0), labels
+    and areas (px). The labels of ``cv2.connectedComponentsWithStats``, whose statistics
+    take four times as long as the labelling."""
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=connectivity)
+    return count, labels, np.bincount(labels.ravel(), minlength=count)
+
+
 def fill_holes(mask: np.ndarray, max_area: int | None = None) -> np.ndarray:
     """The mask with its enclosed holes (smaller than ``max_area``, if given) filled."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats((~mask.astype(bool)).astype(np.uint8), connectivity=4)
-    h, w = mask.shape
-    x, y = stats[:, cv2.CC_STAT_LEFT], stats[:, cv2.CC_STAT_TOP]
-    fill = (x > 0) & (y > 0) & (x + stats[:, cv2.CC_STAT_WIDTH] < w) & (y + stats[:, cv2.CC_STAT_HEIGHT] < h)
+    count, labels, areas = components(~mask.astype(bool), 4)
+    # A hole is enclosed when it does not reach the frame's border.
+    fill = np.ones(count, bool)
+    fill[labels[[0, -1], :]] = False
+    fill[labels[:, [0, -1]]] = False
     if max_area is not None:
-        fill &= stats[:, cv2.CC_STAT_AREA] < max_area
+        fill &= areas < max_area
     return mask.astype(bool) | fill[labels]
 
 
@@ -337,27 +349,32 @@ def collimator_shutters(A: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, lis
     b = _SHUTTER_BAND
     mask = np.zeros(A.shape, bool)
     lines: list[tuple[int, float, float]] = []
+    slopes = np.tan(np.radians(_SHUTTER_ANGLES_DEG))
     for side, (x, m) in enumerate(zip(_side_views(small), _side_views(seen))):
         h, w = x.shape
         # Column sums of attenuation and of the seen field, for band means at any row.
         csum = np.vstack([np.zeros((1, w)), np.cumsum(np.where(m, x, 0.0), axis=0)])
         cnt = np.vstack([np.zeros((1, w)), np.cumsum(m, axis=0)])
+        # Whether a band pair fits in the field and steps up outwards depends on its row and
+        # column only: judged once per pixel, then read along every candidate line.
+        at = np.arange(b, h - b + 1)
+        out_n, in_n = cnt[at] - cnt[at - b], cnt[at + b] - cnt[at]
+        inner = (csum[at + b] - csum[at]) / b
+        step = (csum[at] - csum[at - b]) / b - inner
+        # All the way out to the side, nothing is less attenuating than a blade's step over
+        # the field (a bone's shaft, as straight and long, has tissue or air beyond it).
+        least_out = np.minimum.accumulate(np.where(m, x, np.inf), axis=0)[at - 1]
+        up = (step > _SHUTTER_STEP) & (least_out - inner > 0.5 * _SHUTTER_STEP)
+        fits = (out_n == b) & (in_n == b)
+        code = np.zeros((h, w), np.uint8)
+        code[at] = fits.astype(np.uint8) + 2 * (fits & up).astype(np.uint8)
         rows = np.arange(b, int(_SHUTTER_REACH * h))
-        slopes = np.tan(np.radians(_SHUTTER_ANGLES_DEG))
         u = np.arange(w)
         v = np.rint(rows[None, :, None] + slopes[:, None, None] * (u - w / 2.0)[None, None, :]).astype(int)
         ok = (v >= b) & (v <= h - b)
-        v = np.clip(v, b, h - b)
-        out_n, in_n = cnt[v, u] - cnt[v - b, u], cnt[v + b, u] - cnt[v, u]
-        full = ok & (out_n == b) & (in_n == b)
-        inner = (csum[v + b, u] - csum[v, u]) / b
-        step = (csum[v, u] - csum[v - b, u]) / b - inner
-        # All the way out to the side, nothing is less attenuating than a blade's step over
-        # the field (a bone's shaft, as straight and long, has tissue or air beyond it).
-        least_out = np.minimum.accumulate(np.where(m, x, np.inf), axis=0)[v - 1, u]
-        up = (step > _SHUTTER_STEP) & (least_out - inner > 0.5 * _SHUTTER_STEP)
-        across = full.sum(axis=2)
-        rising = (full & up).sum(axis=2) / np.maximum(across, 1)
+        line = np.where(ok, code.ravel()[np.clip(v, b, h - b) * w + u], 0)
+        across = (line > 0).sum(axis=2)
+        rising = (line > 1).sum(axis=2) / np.maximum(across, 1)
         # Across the field: the seen columns at that row, of those seen anywhere.
         span = across / max(int(m.any(axis=0).sum()), 1)
         good = (rising >= _SHUTTER_ALONG) & (span >= _SHUTTER_SPAN)
@@ -367,7 +384,7 @@ def collimator_shutters(A: np.ndarray, lit: np.ndarray) -> tuple[np.ndarray, lis
         k, r = np.unravel_index(np.argmax(np.where(good, rows[None, :], -1)), good.shape)
         offset, slope = f * (rows[r] + 0.5) - 0.5, float(slopes[k])
         hh, ww = [A.shape, A.shape[::-1]][side // 2]
-        vv, uu = np.mgrid[0:hh, 0:ww]
+        vv, uu = np.arange(hh)[:, None], np.arange(ww)[None, :]
         # Out to the inner end of the compared band: the penumbra is no field.
         mask |= _from_side_view(vv < offset + f * b + slope * (uu - ww / 2.0), side)
         lines.append((side, float(offset), slope))

@@ -40,23 +40,26 @@ def noise_by_level(x: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.nda
     The noise is the pixel's departure from the mean of its four neighbours (edges are few;
     a per-bin median of absolute departures ignores them). Clipped pixels (a saturated
     detector, the C-arm's window) carry no noise and are left out."""
-    up, down = np.roll(x, 1, 0), np.roll(x, -1, 0)
-    left, right = np.roll(x, 1, 1), np.roll(x, -1, 1)
-    residual = x - 0.25 * (up + down + left + right)
+    # Every other row and column: as many pixels as the bins need, a quarter of the sort.
+    # The neighbours wrap around the frame's sides (its rim is no inner pixel anyway).
+    wrapped = np.pad(x, 1, mode="wrap")
+    up, down = wrapped[0:-2:2, 1:-1:2], wrapped[2::2, 1:-1:2]
+    left, right = wrapped[1:-1:2, 0:-2:2], wrapped[1:-1:2, 2::2]
+    residual = x[::2, ::2] - 0.25 * (up + down + left + right)
     level = cv2.blur(x, (5, 5))
     inner = cv2.erode(valid.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     if not inner.any():
         return None
-    clipped = (x >= x[inner].max()) | (x <= x[inner].min())
+    clipped = (x >= x.max(where=inner, initial=-np.inf)) | (x <= x.min(where=inner, initial=np.inf))
     inner &= cv2.dilate(clipped.astype(np.uint8), np.ones((5, 5), np.uint8)) == 0
-    # Every other row and column: as many pixels as the bins need, a quarter of the sort.
-    level, residual = level[::2, ::2][inner[::2, ::2]], residual[::2, ::2][inner[::2, ::2]]
+    level, residual = level[::2, ::2][inner[::2, ::2]], residual[inner[::2, ::2]]
     if level.size < _BINS * _MIN_PER_BIN:
         return None
     edges = np.unique(np.percentile(level, np.linspace(0.5, 99.5, _BINS + 1)))
     if len(edges) < 8:
         return None
-    which = np.clip(np.searchsorted(edges, level) - 1, 0, len(edges) - 2)
+    # Bin numbers as bytes: their stable sort is a radix sort.
+    which = np.clip(np.searchsorted(edges, level) - 1, 0, len(edges) - 2).astype(np.uint8)
     order = np.argsort(which, kind="stable")
     bounds = np.searchsorted(which[order], np.arange(len(edges)))
     centres, sds = [], []
