@@ -706,6 +706,22 @@ def test_pin_names_swapped_in_one_view_are_put_right(phantom_plan, seed):
     assert (outcome.renamed, outcome.unclear_naming) == (["view2"], [] if seed == 2 else ["view2"])
 
 
+def test_a_view_with_contours_replaced_keeps_the_other_labels_maps(phantom_plan):
+    # The other naming's solve and the pruned views reuse the maps already built: equal to
+    # the maps built afresh, and the same objects (no distance transform run again).
+    view = simulate_case(phantom_plan, SimulationConfig(seed=1)).views[0]
+    maps = {label: view.distance_map(label) for label in view.contours}
+    swapped = swap_pins(view)
+    assert swapped.distance_map("pin1") is maps["pin2"] and swapped.distance_map("pin2") is maps["pin1"]
+    assert swapped.distance_map("bone") is maps["bone"]
+    pruned = view.with_contours(bone=view.contours["bone"][::2])
+    assert pruned.distance_map("pin1") is maps["pin1"]
+    fresh = ViewObservation(view.view_id, view.camera, dict(swapped.contours))
+    for label in view.contours:
+        assert np.array_equal(fresh.distance_map(label).values, swapped.distance_map(label).values)
+    assert not np.array_equal(pruned.distance_map("bone").values, maps["bone"].values)
+
+
 def test_two_namings_that_fit_alike_but_disagree_are_refused():
     class Solved:
         def __init__(self, cost: float, angles: tuple[float, float] | None, why: Why | None = None):
