@@ -79,6 +79,8 @@ class SolveOutcome:
     renamed: list[str] = field(default_factory=list)  # views whose pin names were swapped
     unclear_naming: list[str] = field(default_factory=list)  # views whose pin names were open
     pins_shared: list[str] = field(default_factory=list)  # views whose pin edges the fit shared out
+    # Refused because both namings of the open views were solved and neither could be told right.
+    names_undecided: bool = False
 
     @property
     def angles_deg(self) -> tuple[float, float] | None:
@@ -108,15 +110,15 @@ def solve_joint(
     if not_usable is not None:
         return _refused(problem, *not_usable, None, None, {}, start, poses)
     outcome = _solve_named(problem, initial, callback, start)
-    if (outcome.why not in _PIN_REFUSALS or outcome.unclear_naming or outcome.state is None
+    if (outcome.why not in _PIN_REFUSALS or outcome.names_undecided or outcome.state is None
             or not problem.pins_touch(outcome.state.poses)):
         return outcome
     # Refused over the pins where their shadows touch in a radiograph: the extraction's split
     # of their one bar may be what does not fit. Solved again from the views found, with the
     # bar's edges shared out by the fit (JointProblem.with_pin_edges_shared); the first
-    # refusal stands unless that measures. Not where the first solve left the pins' names
-    # open: sharing says nothing about which pin is which across views (so retried, a
-    # headed-pins case refused for its names was measured 14 deg off).
+    # refusal stands unless that measures. Not where both namings were solved and neither
+    # could be told right: sharing says nothing about which pin is which across views (so
+    # retried, a headed-pins case refused for its names was measured 14 deg off).
     sharing = replace(problem.config, sampling=replace(problem.config.sampling, share_pin_edges=True))
     shared = _solve_named(JointProblem(plan, views, sharing), initial, callback, start,
                           named_poses(outcome.T_cam_tibia, initial.T_tibia_pin))
@@ -170,6 +172,7 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
     chosen.seconds = time.perf_counter() - start  # both namings' solves
     if refusal is not None:
         chosen.status, chosen.reason, chosen.why = "not_measured", refusal, Why.PINS_INDISTINCT
+        chosen.names_undecided = True
     return chosen
 
 
