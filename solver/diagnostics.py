@@ -168,9 +168,10 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
         reach = radius * view.camera.fx / min(float(np.min(p[:, 2])) for p in in_camera)
         share = max(float(np.mean(_segment_distances(axes[i], axes[j][0], axes[j][-1]) <= reach))
                     for i, j in ((0, 1), (1, 0)))
-        in_line = all(bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True)
-                                  <= reach)) for i, j in ((0, 1), (1, 0)))
-        overlaps.append(PinOverlap(view.view_id, share, view.pin_edges is not None and in_line and share > 0))
+        ends_hidden = view.pin_edges is not None and share > 0 and all(
+            bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True) <= reach))
+            for i, j in ((0, 1), (1, 0)))
+        overlaps.append(PinOverlap(view.view_id, share, ends_hidden))
     return tuple(overlaps)
 
 

@@ -72,6 +72,13 @@ def _grown(mask: np.ndarray, by_px: float) -> np.ndarray:
     return cv2.dilate(mask, np.ones((side, side), np.uint8)) > 0
 
 
+def _nearest_distances(points: np.ndarray, pixels: np.ndarray, cell_px: float) -> np.ndarray:
+    """Each of ``pixels``' (M, 2) distance to the nearest of ``points`` (N >= 1, 2), exact
+    (the compiled search, binned in cells of ``cell_px``)."""
+    gap = points[nearest_points(points, np.ascontiguousarray(pixels, dtype=float), cell_px)] - pixels
+    return np.sqrt(gap[:, 0] ** 2 + gap[:, 1] ** 2)
+
+
 def _within(a: np.ndarray, b: np.ndarray, gap_px: float) -> bool:
     """Whether two uint8 masks come within ``gap_px`` of each other (or overlap)."""
     return bool(np.any(_grown(a, gap_px) & (b > 0)))
@@ -134,10 +141,7 @@ class JointProblem:
                 if len(pixels) == 0 or len(uv) == 0 or float(np.median(
                         view.distance_map(label).query(uv)[0])) > c.gates.max_coarse_bone_median_px:
                     continue
-                # Each pixel's distance to its nearest outline pixel (exact, compiled).
-                nearest = nearest_points(nearby, np.ascontiguousarray(pixels, dtype=float), reach)
-                gap = nearby[nearest] - pixels
-                near = np.sqrt(gap[:, 0] ** 2 + gap[:, 1] ** 2) <= reach
+                near = _nearest_distances(nearby, pixels, reach) <= reach
                 if not near.all():
                     kept[label] = pixels[near]
             if kept:
@@ -172,8 +176,8 @@ class JointProblem:
         name each pin's edges already.
 
         Seen one behind the other, the pins cast one bar, and the extraction's split of its
-        edges into two pins is a guess (an idealised case was split 60 px wrong, a third of
-        the realism study's refusals were of such views). Yet the bar still says where both
+        edges into two pins is a guess (idealised seed 12 was split about 150 px from where
+        one pin ends). Yet the bar still says where both
         pins are: each of its edges is one pin's or the other's. So each edge pixel (as
         extracted, both names pooled) goes to the pin whose outline at ``poses`` passes
         nearer, none to either where the two pass about as near; a pin's outline under the
@@ -215,11 +219,8 @@ class JointProblem:
         distances = []
         for label in PIN_LABELS:
             outline = self._outline_px(k, label, poses)
-            if len(outline) == 0 or len(edges) == 0:
-                distances.append(np.full(len(edges), np.inf))
-                continue
-            gap = outline[nearest_points(outline, np.ascontiguousarray(edges, dtype=float), 8.0)] - edges
-            distances.append(np.hypot(gap[:, 0], gap[:, 1]))
+            distances.append(_nearest_distances(outline, edges, 8.0) if len(outline) and len(edges)
+                             else np.full(len(edges), np.inf))
         to_first, to_second = distances
         clear = np.abs(to_first - to_second) >= self.config.sampling.pin_edge_ambiguity_px
         return {"pin1": edges[clear & (to_first < to_second)], "pin2": edges[clear & (to_second < to_first)]}

@@ -187,8 +187,6 @@ class StageRunner:
         if not set(stage.labels) & set(PIN_LABELS):
             return
         self.problem, shared = self.problem.with_pin_edges_shared(state.poses)
-        if not shared:
-            return
         self.pins_shared = sorted(set(self.pins_shared) | set(shared))
 
     def _silhouettes(self, stage: Stage, result: StagesResult) -> StagesResult:
