@@ -20,7 +20,14 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from slamtka.solver.geometry import Pose
-from slamtka.solver.kernels import coupling_blocks, point_blocks, scatter_add, schur_complement
+from slamtka.solver.kernels import (
+    coupling_blocks,
+    point_blocks,
+    robust_cost,
+    scatter_add,
+    schur_complement,
+    squared_norms,
+)
 from slamtka.solver.variables import Ordering, PoseKey
 
 __all__ = [
@@ -46,6 +53,8 @@ __all__ = [
 _POINT_REGULARISATION = 1e-6
 # Absolute floor on the pose diagonal so an unobserved direction cannot make S singular.
 _POSE_REGULARISATION = 1e-9
+# The robust losses, in the order of their codes in :func:`kernels.robust_cost`.
+_LOSS_KINDS = ("l2", "huber", "cauchy")
 
 
 @dataclass(frozen=True)
@@ -83,16 +92,13 @@ class RobustLoss:
     kind: str = "huber"
     scale: float = 2.0
 
-    def rho(self, s: np.ndarray) -> np.ndarray:
-        c2 = self.scale**2
-        if self.kind == "l2":
-            return s
-        if self.kind == "huber":
-            r = np.sqrt(s)
-            return np.where(r <= self.scale, s, 2.0 * self.scale * r - c2)
-        if self.kind == "cauchy":
-            return c2 * np.log1p(s / c2)
-        raise ValueError(f"unknown robust loss {self.kind!r}")
+    def __post_init__(self) -> None:
+        if self.kind not in _LOSS_KINDS:
+            raise ValueError(f"unknown robust loss {self.kind!r}")
+
+    def cost(self, s: np.ndarray) -> float:
+        """``sum(rho(s))`` over the squared norms ``s`` (N,) (:func:`kernels.robust_cost`)."""
+        return robust_cost(s, _LOSS_KINDS.index(self.kind), float(self.scale))
 
     def weight(self, s: np.ndarray) -> np.ndarray:
         """IRLS weight ``rho'(s)``."""
@@ -122,7 +128,7 @@ class Linearization:
     def squared_norms(self) -> np.ndarray:
         """(N,) squared norm of each residual block, read once whitened (the cost, the
         robust weights and the covariance share it)."""
-        return np.sum(self.residuals**2, axis=1)
+        return squared_norms(np.ascontiguousarray(self.residuals, float))
 
 
 @dataclass(frozen=True)
@@ -232,7 +238,7 @@ class SolveReport:
 
 
 def _term_cost(term: Term, lin: Linearization) -> float:
-    return float(term.noise.weight * np.sum(term.noise.loss.rho(lin.squared_norms)))
+    return term.noise.weight * term.noise.loss.cost(lin.squared_norms)
 
 
 def _evaluate(terms: list[Term], state: State, jacobians: bool):

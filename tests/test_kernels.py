@@ -12,8 +12,12 @@ from slamtka.solver.kernels import (
     outline_samples,
     pinhole,
     point_blocks,
+    ray_minima,
+    robust_cost,
     scatter_add,
     silhouette_rows,
+    squared_norms,
+    trilinear,
     twist_rows,
 )
 
@@ -146,3 +150,62 @@ def test_twist_rows_are_the_gradient_and_its_moment_to_the_last_bit():
                        a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                        a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
     assert np.array_equal(twist_rows(G, p), np.concatenate([G, moment], axis=-1))
+
+
+def test_ray_minima_is_the_sampled_search_of_the_least_distance_along_each_ray():
+    """The compiled search equals numpy's statement of it: each ray's interval in the
+    field's box (slab test; the closest approach to its centre for a ray that misses), the
+    coarse samples of it (clamped to its far end), the fine samples around the least, the
+    parabola's vertex."""
+    rng = np.random.default_rng(5)
+    values = rng.normal(0.0, 5.0, (30, 24, 20)).astype(np.float32)
+    origin, spacing, step, coarse, min_depth = np.array([-40.0, -30.0, 300.0]), 2.0, 0.7, 4, 10.0
+    box = np.vstack([origin, origin + spacing * (np.array(values.shape) - 1)])
+    angle = 0.3
+    R = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    t = np.array([3.0, -2.0, 5.0])
+    rays = np.column_stack([rng.uniform(-0.3, 0.3, (300, 2)), np.ones(300)])  # some miss the box
+
+    direction = rays @ R.T
+    t0, t1 = (box[0] - t) / direction, (box[1] - t) / direction
+    near = np.max(np.minimum(t0, t1), axis=1)
+    far = np.min(np.maximum(t0, t1), axis=1)
+    missed = ~(far >= near)
+    assert missed.any() and not missed.all()
+    closest = direction @ (box.mean(axis=0) - t) / np.sum(direction**2, axis=1)
+    near[missed] = far[missed] = closest[missed]
+    depths = np.maximum(np.column_stack([near, far]), min_depth)
+
+    def field(z: np.ndarray) -> np.ndarray:
+        points = (rays[:, None, :] * z[:, :, None]).reshape(-1, 3) @ R.T + t
+        return trilinear(values, origin, spacing, points, False)[0].reshape(z.shape)
+
+    coarse_step = coarse * step
+    samples = int(np.ceil(np.max(depths[:, 1] - depths[:, 0]) / coarse_step)) + 1
+    z = np.minimum(depths[:, :1] + coarse_step * np.arange(samples), depths[:, 1:])
+    rows = np.arange(len(rays))
+    z_fine = z[rows, np.argmin(field(z), axis=1)][:, None] + np.arange(-coarse, coarse + 1) * step
+    d = field(z_fine)
+    best = np.clip(np.argmin(d, axis=1), 1, 2 * coarse - 1)
+    d_minus, d_0, d_plus = d[rows, best - 1], d[rows, best], d[rows, best + 1]
+    curvature = d_plus - 2.0 * d_0 + d_minus
+    shift = np.where(curvature > 1e-9, 0.5 * (d_minus - d_plus) / np.maximum(curvature, 1e-9), 0.0)
+    expected = z_fine[rows, best] + np.clip(shift, -1.0, 1.0) * step
+    found = ray_minima(values, origin, spacing, R, t, rays, min_depth, step, coarse)
+    np.testing.assert_allclose(found, expected, rtol=0, atol=1e-9)
+
+
+def test_squared_norms_and_robust_costs_are_numpys_sums():
+    """Each residual block's squared norm, and the sums of the robust losses over them,
+    equal numpy's statements of the same maths (to rounding: the sums run in another order)."""
+    rng = np.random.default_rng(11)
+    for m in (1, 2, 6):
+        r = rng.normal(0.0, 3.0, (500, m))
+        np.testing.assert_allclose(squared_norms(r), np.sum(r**2, axis=1), rtol=1e-15, atol=0)
+    s = np.sum(rng.normal(0.0, 3.0, (500, 2)) ** 2, axis=1)
+    scale = 2.0
+    huber = np.where(np.sqrt(s) <= scale, s, 2.0 * scale * np.sqrt(s) - scale**2)
+    cauchy = scale**2 * np.log1p(s / scale**2)
+    for kind, rho in enumerate((s, huber, cauchy)):
+        np.testing.assert_allclose(robust_cost(s, kind, scale), np.sum(rho), rtol=1e-12)
+    assert robust_cost(np.zeros(0), 1, scale) == 0.0
