@@ -27,8 +27,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["bilinear", "contour_generators", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks", "ray_minima",
-           "robust_cost", "scatter_add", "schur_complement", "silhouette_rows", "squared_norms", "trilinear", "twist_rows", "warm_up"]
+__all__ = ["bilinear", "contour_generators", "coupling_blocks", "footprint_mask", "in_field", "nearest_points", "outline_samples", "pinhole", "point_blocks", "pose_rows", "ray_minima",
+           "robust_cost", "scatter_add", "schur_complement", "silhouette_rows", "squared_norms", "surface_rows", "trilinear", "warm_up"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -224,22 +224,50 @@ def contour_generators(front: np.ndarray, adjacent_faces: np.ndarray, adjacent_e
     return out[:kept]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _twist_row(g0: float, g1: float, g2: float, p0: float, p1: float, p2: float, out: np.ndarray) -> None:
+    """``out`` (6,) = ``[g, p x g]``: the Jacobian row of a right pose increment for the
+    gradient ``g`` (with respect to the posed point, rotated back) at the source point ``p``."""
+    out[0], out[1], out[2] = g0, g1, g2
+    out[3] = p1 * g2 - p2 * g1
+    out[4] = p2 * g0 - p0 * g2
+    out[5] = p0 * g1 - p1 * g0
+
+
 @numba.njit(cache=True, nogil=True)
-def twist_rows(G: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``[G, p x G]`` (N, m, 6) of gradients ``G`` (N, m, 3) and points ``p`` (N, 3): the
-    Jacobian rows of a right pose increment (``terms.pose_increments``), component by
-    component as ``geometry.cross`` forms them."""
-    n, m = G.shape[0], G.shape[1]
-    out = np.empty((n, m, 6))
+def pose_rows(G_cam: np.ndarray, X: np.ndarray, R_view: np.ndarray, R_body: np.ndarray, t_body: np.ndarray,
+              with_body: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Jacobians (N, m, 6) with respect to the view's pose and, ``with_body``, the body's
+    pose (``R_body``, ``t_body``: body to tibia; else an empty (0, m, 6)) of quantities whose
+    gradients with respect to the camera-frame point are ``G_cam`` (N, m, 3), at body-frame
+    points ``X`` (N, 3), and their gradients (N, m, 3) with respect to ``X`` (see
+    ``terms.pose_increments``). One pass instead of the rotations, moments and reshapes of
+    every term's linearisation."""
+    n, m = G_cam.shape[0], G_cam.shape[1]
+    J_view = np.empty((n, m, 6))
+    J_body = np.empty((n if with_body else 0, m, 6))
+    G_x = np.empty((n, m, 3))
     for i in range(n):
-        a0, a1, a2 = p[i, 0], p[i, 1], p[i, 2]
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        p0, p1, p2 = x0, x1, x2
+        if with_body:
+            p0 = R_body[0, 0] * x0 + R_body[0, 1] * x1 + R_body[0, 2] * x2 + t_body[0]
+            p1 = R_body[1, 0] * x0 + R_body[1, 1] * x1 + R_body[1, 2] * x2 + t_body[1]
+            p2 = R_body[2, 0] * x0 + R_body[2, 1] * x1 + R_body[2, 2] * x2 + t_body[2]
         for k in range(m):
-            b0, b1, b2 = G[i, k, 0], G[i, k, 1], G[i, k, 2]
-            out[i, k, 0], out[i, k, 1], out[i, k, 2] = b0, b1, b2
-            out[i, k, 3] = a1 * b2 - a2 * b1
-            out[i, k, 4] = a2 * b0 - a0 * b2
-            out[i, k, 5] = a0 * b1 - a1 * b0
-    return out
+            c0, c1, c2 = G_cam[i, k, 0], G_cam[i, k, 1], G_cam[i, k, 2]
+            g0 = c0 * R_view[0, 0] + c1 * R_view[1, 0] + c2 * R_view[2, 0]
+            g1 = c0 * R_view[0, 1] + c1 * R_view[1, 1] + c2 * R_view[2, 1]
+            g2 = c0 * R_view[0, 2] + c1 * R_view[1, 2] + c2 * R_view[2, 2]
+            _twist_row(g0, g1, g2, p0, p1, p2, J_view[i, k])
+            if with_body:
+                b0 = g0 * R_body[0, 0] + g1 * R_body[1, 0] + g2 * R_body[2, 0]
+                b1 = g0 * R_body[0, 1] + g1 * R_body[1, 1] + g2 * R_body[2, 1]
+                b2 = g0 * R_body[0, 2] + g1 * R_body[1, 2] + g2 * R_body[2, 2]
+                _twist_row(b0, b1, b2, x0, x1, x2, J_body[i, k])
+                g0, g1, g2 = b0, b1, b2
+            G_x[i, k, 0], G_x[i, k, 1], G_x[i, k, 2] = g0, g1, g2
+    return J_view, J_body, G_x
 
 
 @numba.njit(cache=True, nogil=True)
@@ -427,6 +455,31 @@ def trilinear(values: np.ndarray, origin: np.ndarray, spacing: float, points: np
         value[p] = _trilinear_at(values, origin, spacing, points[p, 0], points[p, 1], points[p, 2],
                                  grad[p] if gradient else none)
     return value, grad
+
+
+@numba.njit(cache=True, nogil=True)
+def surface_rows(values: np.ndarray, origin: np.ndarray, spacing: float, points: np.ndarray,
+                 ids: np.ndarray, seated: np.ndarray, directions: np.ndarray, jacobian: bool
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A back-projection term's residuals (N, 2) for the points ``points[ids]``: the field's
+    value there (see :func:`trilinear`) and the distance moved along ``directions`` (N, 3)
+    from ``seated`` (N, 3); with ``jacobian`` their gradients (N, 2, 3) with respect to the
+    point (the field's gradient, the direction), else an empty (0, 2, 3). One pass instead
+    of a gather, a lookup and three stacks per evaluation."""
+    n = ids.shape[0]
+    r = np.empty((n, 2))
+    J = np.empty((n if jacobian else 0, 2, 3))
+    none = np.empty(0)
+    for i in range(n):
+        x = points[ids[i]]
+        r[i, 0] = _trilinear_at(values, origin, spacing, x[0], x[1], x[2], J[i, 0] if jacobian else none)
+        along = 0.0
+        for k in range(3):
+            along += (x[k] - seated[i, k]) * directions[i, k]
+            if jacobian:
+                J[i, 1, k] = directions[i, k]
+        r[i, 1] = along
+    return r, J
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -618,7 +671,8 @@ def warm_up() -> None:
                      np.zeros((1, 1), np.int64), 1, 0.0, 1e-6)
     footprint_mask(np.zeros((1, 2)), np.ones((1, 2)), 2, 2)
     contour_generators(np.ones(2, np.bool_), np.array([[0, 1]]), np.array([[0, 1]]))
-    twist_rows(np.zeros((1, 1, 3)), np.zeros((1, 3)))
+    for with_body in (False, True):
+        pose_rows(np.zeros((1, 1, 3)), np.zeros((1, 3)), np.eye(3), np.eye(3), np.zeros(3), with_body)
     nearest_points(np.zeros((1, 2)), np.zeros((1, 2)), 1.0)
     bilinear(np.zeros((2, 2), np.float32), np.zeros(2), np.zeros((1, 2)))
     in_field(np.zeros((1, 2)), 2, 2, 0.0, np.inf)
@@ -635,6 +689,8 @@ def warm_up() -> None:
                         np.zeros((2, 2), np.float32), np.zeros(2), np.zeros(1, np.int64),
                         np.zeros(1, np.int64), np.zeros((1, 2)), jacobian)
     for gradient in (False, True):
+        surface_rows(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)),
+                     np.zeros(1, np.int64), np.zeros((1, 3)), np.ones((1, 3)), gradient)
         trilinear(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.zeros((1, 3)), gradient)
     ray_minima(np.zeros((2, 2, 2), np.float32), np.zeros(3), 1.0, np.eye(3), np.zeros(3),
                np.ones((1, 3)), 10.0, 1.0, 4)

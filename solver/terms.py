@@ -27,7 +27,7 @@ import numpy as np
 
 from slamtka.solver.camera import MIN_DEPTH_MM, Camera
 from slamtka.solver.geometry import Pose, hat, so3_log, so3_right_jacobian_inverse
-from slamtka.solver.kernels import nearest_points, silhouette_rows, twist_rows
+from slamtka.solver.kernels import nearest_points, pose_rows, silhouette_rows, surface_rows
 from slamtka.solver.observations import DistanceMap, VisibleRegion
 from slamtka.solver.optimizer import Linearization, NoiseModel, State
 from slamtka.solver.sdf import SignedDistanceField
@@ -49,22 +49,17 @@ def pose_increments(
     bone, and the gradient with respect to ``X`` (N, ..., 3). A right increment
     ``(rho, phi)`` of a pose ``T`` moves ``T p`` by ``R rho - R [p]x phi``; for a row ``g``
     of ``G_cam R`` the second block is ``-g [p]x = (p x g)``, which is how the blocks are
-    formed without a batched product per point.
+    formed without a batched product per point (:func:`~slamtka.solver.kernels.pose_rows`).
     """
-    def increments(G: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """(N, ..., 6) from ``G`` = d / d(T p) R (N, ..., 3) and the pose's source points p."""
-        rows = twist_rows(np.ascontiguousarray(G).reshape(len(G), -1, 3), np.ascontiguousarray(p))
-        return rows.reshape(G.shape[:-1] + (6,))
-
-    def rotated(G: np.ndarray, R: np.ndarray) -> np.ndarray:
-        return (G.reshape(-1, 3) @ R).reshape(G.shape)
-
-    G_view = rotated(G_cam, state.poses[view].R)
-    if body == BONE:
-        return increments(G_view, X), None, G_view
-    T_body = state.poses[body]
-    G_body = rotated(G_view, T_body.R)
-    return increments(G_view, T_body.apply(X)), increments(G_body, X), G_body
+    with_body = body != BONE
+    T_body = state.poses[body] if with_body else state.poses[view]  # any pose: unused for the bone
+    J_view, J_body, G_x = pose_rows(
+        np.ascontiguousarray(G_cam, float).reshape(len(G_cam), -1, 3), np.ascontiguousarray(X, float),
+        np.ascontiguousarray(state.poses[view].R), np.ascontiguousarray(T_body.R),
+        np.ascontiguousarray(T_body.t, float), with_body)
+    rows = G_cam.shape[:-1]
+    return (J_view.reshape(rows + (6,)), J_body.reshape(rows + (6,)) if with_body else None,
+            G_x.reshape(rows + (3,)))
 
 
 def pose_in_view(poses: Mapping[PoseKey, Pose], view: PoseKey, body: PoseKey) -> Pose:
@@ -146,14 +141,13 @@ class BackProjectionTerm:
         return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else 0.0
 
     def linearize(self, state: State, jacobians: bool = True) -> Linearization:
-        X = state.points[self.point_ids]
-        d, grad = self.sdf.query(X, gradient=jacobians)
-        along = np.einsum("ij,ij->i", X - self.seated, self.ray_directions)
-        r = np.column_stack([d, along])
+        sdf = self.sdf
+        r, J = surface_rows(sdf.values, np.asarray(sdf.origin, float), float(sdf.spacing),
+                            np.ascontiguousarray(state.points, float), np.asarray(self.point_ids, np.int64),
+                            np.ascontiguousarray(self.seated, float),
+                            np.ascontiguousarray(self.ray_directions, float), jacobians)
         if not jacobians:
             return Linearization(r)
-        assert grad is not None  # asked for with the Jacobians
-        J = np.stack([grad, self.ray_directions], axis=1)
         return Linearization(r, [], (self.point_ids, J))
 
 

@@ -12,13 +12,14 @@ from slamtka.solver.kernels import (
     outline_samples,
     pinhole,
     point_blocks,
+    pose_rows,
     ray_minima,
     robust_cost,
     scatter_add,
     silhouette_rows,
     squared_norms,
+    surface_rows,
     trilinear,
-    twist_rows,
 )
 
 
@@ -142,14 +143,28 @@ def test_contour_generators_are_the_edges_between_front_and_back_faces_run_by_th
     assert found.dtype == edges.dtype and np.array_equal(found, expected)
 
 
-def test_twist_rows_are_the_gradient_and_its_moment_to_the_last_bit():
+def test_pose_rows_are_the_rotated_gradients_and_their_moments():
+    """The view's and the body's Jacobian rows equal numpy's statement of them: the
+    gradient rotated into each pose's source frame, and its moment about the source point
+    (the point carried by the body's pose for the view, the point itself for the body)."""
     rng = np.random.default_rng(7)
-    G, p = rng.normal(size=(300, 2, 3)), rng.normal(size=(300, 3)) * 100.0
-    a, b = p[:, None, :], G
-    moment = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                       a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-    assert np.array_equal(twist_rows(G, p), np.concatenate([G, moment], axis=-1))
+    G_cam, X = rng.normal(size=(300, 2, 3)), rng.normal(size=(300, 3)) * 100.0
+    R_view = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    R_body, t_body = np.linalg.qr(rng.normal(size=(3, 3)))[0], rng.normal(size=3) * 50.0
+
+    def rows(G: np.ndarray, p: np.ndarray) -> np.ndarray:
+        return np.concatenate([G, np.cross(p[:, None, :], G)], axis=-1)
+
+    G_view = G_cam @ R_view
+    J_view, J_body, G_x = pose_rows(G_cam, X, R_view, R_body, t_body, False)
+    np.testing.assert_allclose(J_view, rows(G_view, X), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(G_x, G_view, rtol=1e-12, atol=1e-12)
+    assert J_body.shape == (0, 2, 6)
+    G_body = G_view @ R_body
+    J_view, J_body, G_x = pose_rows(G_cam, X, R_view, R_body, t_body, True)
+    np.testing.assert_allclose(J_view, rows(G_view, X @ R_body.T + t_body), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(J_body, rows(G_body, X), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(G_x, G_body, rtol=1e-12, atol=1e-12)
 
 
 def test_ray_minima_is_the_sampled_search_of_the_least_distance_along_each_ray():
@@ -209,3 +224,25 @@ def test_squared_norms_and_robust_costs_are_numpys_sums():
     for kind, rho in enumerate((s, huber, cauchy)):
         np.testing.assert_allclose(robust_cost(s, kind, scale), np.sum(rho), rtol=1e-12)
     assert robust_cost(np.zeros(0), 1, scale) == 0.0
+
+
+@pytest.mark.parametrize("jacobian", [False, True])
+def test_surface_rows_are_the_lookup_and_the_distance_along_the_ray(jacobian):
+    """A back-projection term's rows equal numpy's statement of them: the field's value
+    and gradient at each chosen point, and its offset from the seated point along its ray."""
+    rng = np.random.default_rng(13)
+    values = rng.normal(0.0, 5.0, (12, 10, 8)).astype(np.float32)
+    origin, spacing = np.array([-5.0, 2.0, 1.0]), 1.5
+    points = rng.uniform(-10.0, 20.0, (80, 3))  # some beyond the grid
+    ids = rng.choice(80, 50, replace=False)
+    seated = points[ids] + rng.normal(0.0, 1.0, (50, 3))
+    directions = rng.normal(size=(50, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    d, grad = trilinear(values, origin, spacing, points[ids], True)
+    r, J = surface_rows(values, origin, spacing, points, ids, seated, directions, jacobian)
+    expected = np.column_stack([d, np.sum((points[ids] - seated) * directions, axis=1)])
+    np.testing.assert_allclose(r, expected, rtol=1e-13, atol=1e-12)
+    if jacobian:
+        np.testing.assert_array_equal(J, np.stack([grad, directions], axis=1))
+    else:
+        assert J.shape == (0, 2, 3)
