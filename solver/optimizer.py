@@ -23,6 +23,7 @@ from slamtka.solver.geometry import Pose
 from slamtka.solver.kernels import (
     coupling_blocks,
     point_blocks,
+    point_steps,
     robust_cost,
     scatter_add,
     schur_complement,
@@ -371,10 +372,7 @@ def _solve_step(ne: NormalEquations, n_poses: int, free: np.ndarray, lam: float)
     if len(V_inv) == 0:
         return d_p, np.zeros((0, 3))
     W, pose_of = ne.coupling
-    d_p_ext = np.vstack([d_p.reshape(n_poses, 6), np.zeros((1, 6))])
-    coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])  # sum_a H_xp d_p
-    d_x = -np.einsum("xij,xj->xi", V_inv, ne.g_x + coupled)
-    return d_p, d_x
+    return d_p, point_steps(W, pose_of, d_p, V_inv, ne.g_x)
 
 
 def _free(ordering: Ordering, fixed_dofs: Mapping[PoseKey, np.ndarray] | None) -> np.ndarray:

@@ -12,6 +12,7 @@ from slamtka.solver.kernels import (
     outline_samples,
     pinhole,
     point_blocks,
+    point_steps,
     pose_rows,
     ray_minima,
     robust_cost,
@@ -246,3 +247,17 @@ def test_surface_rows_are_the_lookup_and_the_distance_along_the_ray(jacobian):
         np.testing.assert_array_equal(J, np.stack([grad, directions], axis=1))
     else:
         assert J.shape == (0, 2, 3)
+
+
+def test_point_steps_are_the_back_substitution_of_the_pose_steps():
+    """The points' increments equal numpy's batched statement of them, the empty coupling
+    slots (pose P) moving nothing."""
+    rng = np.random.default_rng(17)
+    X, k, P = 200, 3, 4
+    W = rng.normal(size=(X, k, 6, 3))
+    pose_of = rng.integers(0, P + 1, (X, k))
+    d_p, V_inv, g_x = rng.normal(size=6 * P), rng.normal(size=(X, 3, 3)), rng.normal(size=(X, 3))
+    d_p_ext = np.vstack([d_p.reshape(P, 6), np.zeros((1, 6))])
+    coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])
+    expected = -np.einsum("xij,xj->xi", V_inv, g_x + coupled)
+    np.testing.assert_allclose(point_steps(W, pose_of, d_p, V_inv, g_x), expected, rtol=1e-12, atol=1e-12)
