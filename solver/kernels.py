@@ -18,6 +18,11 @@ traced outline, the contour generators of a pose, the Jacobian rows of a pose in
 silhouette term's residual rows and their gradients (projection, lookups
 and nearest-pair distances: some fifteen array passes per evaluation, several hundred
 evaluations per solve), and the points' blocks of the normal equations and their sums by key.
+So are the seating of edge points on their rays (some 25 field lookups per ray, each a dozen
+array passes over every ray's samples in numpy), every term's robust cost, the Jacobian
+rows of the poses and the back-projection term's rows (a few hundred of each per solve,
+where numpy's per-call overhead was most of their cost), and each trial step's
+back-substitution of the points' increments.
 Compiled on first use and cached beside this file when it is writable (the service's
 warm-up pays the first compilation, about a second).
 """
