@@ -21,8 +21,8 @@ from slamtka.solver.geometry import Pose
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.triangulation import PinSighting, sighting_score
 
-__all__ = ["naming_score", "swap_pins", "swap_pays", "naming_clear", "settle_naming", "NAMING_MIN_COST_GAP",
-           "NAMING_PLANE_TOLERANCE_DEG"]
+__all__ = ["naming_score", "swap_pins", "swap_pays", "naming_clear", "cost_gap", "settle_naming",
+           "NAMING_MIN_COST_GAP", "NAMING_PLANE_TOLERANCE_DEG"]
 
 # A view's names are swapped when the swap at least halves how badly the pins' sightings
 # meet and gains more than a millimetre; they are clear when the other naming is worse by
@@ -32,8 +32,10 @@ _SWAP_MIN_MM = 1.0
 # Of two solves under both namings (the same residuals, as many parameters), one whose final
 # cost (sum of whitened squares) is lower by this much wins: a likelihood ratio of e^12.5.
 # Wrong namings cost 110-1,300 more than the right one on 80 simulated cases (docs/solver.md,
-# "Pin naming"), but one headed-pin case of the 30-case realism study 94 less: its headless
-# pin model fits the heads worse under the right names. Closer than this, both namings must
+# "Pin naming"). On frames the costs are compared in units of the fits' own dispersion
+# (:func:`cost_gap`): a headed-pin case's wrong naming cost 91-112 less than the right one,
+# most of it in the model-projection term, whose residuals were 2.1-2.4 sigma RMS under
+# either naming (a headless pin model fitted to headed pins); measured 14.9 deg off at level 3. Closer than this, both namings must
 # give the same plane within the tolerance, else there is no answer.
 NAMING_MIN_COST_GAP = 100.0
 # gates.Why.GATE_FAILED (the contours do not fit, the pins are not parallel): the kind of
@@ -48,6 +50,7 @@ class _Solved(Protocol):
     status: str
     reason: str
     term_costs: dict[str, float]
+    residual_rms: dict[str, float]  # per term, in units of its sigma
 
     @property
     def why(self) -> str | None: ...  # a refusal's kind (gates.Why, a str)
@@ -89,6 +92,21 @@ def naming_clear(chosen_mm: float, other_mm: float) -> bool:
     return swap_pays(other_mm, chosen_mm)
 
 
+def cost_gap(first: _Solved, second: _Solved) -> float:
+    """How much worse the second naming fits than the first (negative: better): the
+    difference of their final costs, each energy term's share divided by that term's
+    dispersion, the mean square of its whitened residuals in the naming that fits it better,
+    where above 1 (a quasi-likelihood ratio). A model that misfits the image everywhere (a
+    headless pin model over headed pins, a bone outline beside another bone's edge) inflates
+    a term's cost under both namings alike; its raw difference would overstate the evidence
+    for either by that factor. Residuals within their sigma leave the costs as they are."""
+    gap = 0.0
+    for term, cost in first.term_costs.items():
+        rms = min(first.residual_rms.get(term, 1.0), second.residual_rms.get(term, 1.0))
+        gap += (second.term_costs.get(term, 0.0) - cost) / max(1.0, rms * rms)
+    return gap
+
+
 def settle_naming(first: Solved, second: Solved, views: list[str],
                   sightings_prefer_second: bool | None = None) -> tuple[Solved, str | None]:
     """Of two solves under the two namings of ``views``, the one to report, and the refusal
@@ -102,8 +120,9 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
     the right naming may be the refused one (a simulated case was measured 4.1 deg off
     under the wrong names while the right ones left the pins 3.2 deg from parallel)."""
     cost_first, cost_second = sum(first.term_costs.values()), sum(second.term_costs.values())
+    gap = cost_gap(first, second)
     if second.status != "measured":
-        if second.why == _ANSWER_GATE_FAILED and cost_second < cost_first + NAMING_MIN_COST_GAP:
+        if second.why == _ANSWER_GATE_FAILED and gap < NAMING_MIN_COST_GAP:
             return first, (f"the two pins cannot be told apart in view {', '.join(views)}: the "
                            f"other naming fits as well (final cost {cost_second:.0f} against "
                            f"{cost_first:.0f}) but is refused ({second.reason}); take a view "
@@ -111,8 +130,8 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
         return first, None
     if first.status != "measured":
         return second, None
-    better = first if cost_first <= cost_second else second
-    if abs(cost_first - cost_second) >= NAMING_MIN_COST_GAP:
+    better = first if gap >= 0 else second
+    if abs(gap) >= NAMING_MIN_COST_GAP:
         if sightings_prefer_second is None or sightings_prefer_second == (better is second):
             return better, None
         return better, (f"the two pins cannot be told apart in view {', '.join(views)}: the "

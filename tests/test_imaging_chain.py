@@ -110,6 +110,22 @@ def test_overlapping_pin_shadows_are_split_into_the_two_pins(phantom_plan, scene
         assert np.mean(covered) >= 0.55, label  # most of what the other pin does not hide
 
 
+def test_one_bar_is_not_cut_into_two_pins_shorter_than_a_pin_can_be(phantom_plan, scene):
+    """Seed 3, view 1: the pins lie on each other, their shadow one bar with no step, cut in
+    the middle (above). Had the plan's pin been expected over twice the bar's length, its
+    halves would be shorter than any pin: one pin's bar with the other pin missed, not two
+    pins (patella seeds 0 and 12 at level 3 were measured 2.0 and 10.7 deg off from such
+    halves). It is then not cut, and no pins are named from it."""
+    case = simulate_case(phantom_plan, SimulationConfig(seed=3))
+    r = render_radiograph(phantom_plan, case.truth_T_cam_tibia[0], case.truth_T_tibia_pin, default_camera(),
+                          XRayParams(), np.random.default_rng(3), scene)
+    union = np.vstack([r.silhouettes["pin1"], r.silhouettes["pin2"]])
+    length = float(np.ptp(union @ np.linalg.eigh(np.cov(union.T))[1][:, -1]))
+    assert extract_contours(r.image, expected_pin_length_px=length).diagnostics["pins_overlap"] == "coincident"
+    found = extract_contours(r.image, expected_pin_length_px=3.0 * length)
+    assert found.diagnostics["pins_found"] < 2 and "pins_overlap" not in found.diagnostics
+
+
 def test_contours_of_an_inverted_frame_and_pin_labels_from_the_expected_positions(radiographs):
     _, frames = radiographs
     r = frames[1]

@@ -14,7 +14,7 @@ from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
-from slamtka.solver.pin_naming import settle_naming, swap_pins
+from slamtka.solver.pin_naming import cost_gap, settle_naming, swap_pins
 from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.slam import METHODS, InitialGuess, SolverConfig, solve_joint
@@ -731,6 +731,7 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
             self.status = "measured" if angles else "not_measured"
             self.reason = "" if angles else "the pins are 3.2 deg from parallel"
             self.term_costs, self.angles_deg = {"E_rp": cost}, angles
+            self.residual_rms = {"E_rp": 0.7}
             self.why = why if angles or why else Why.GATE_FAILED
 
     right, wrong = Solved(1000.0, (1.0, 5.0)), Solved(1300.0, (-6.0, 6.0))
@@ -756,6 +757,32 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
     assert refusal == ("the two pins cannot be told apart in view view2: both namings fit (final cost "
                        "1000 against 1010) and give planes 7.0 deg apart in CTR and 1.0 deg in STR; "
                        "take a view from another angle")
+
+
+def test_namings_compare_their_costs_in_units_of_the_fits_own_dispersion():
+    """Headed pins seed 26, level 3 (the costs and RMS of its two solves): the wrong naming
+    cost 112 less than the right one, most of it in the model-projection term, whose residuals
+    were 2.1-2.4 sigma RMS under either naming (a headless pin model over headed pins). Taken at
+    face value the wrong naming won, 14.8 deg off in CTR; in units of that dispersion it is
+    no better, and the planes 14.9 deg apart are refused."""
+    class Solved:
+        def __init__(self, costs: dict[str, float], rms: dict[str, float], angles: tuple[float, float]):
+            self.status, self.reason, self.why = "measured", "", None
+            self.term_costs, self.residual_rms, self.angles_deg = costs, rms, angles
+
+    right = Solved({"E_rp": 67, "E_bp": 91, "E_mp": 541, "E_odo": 4},
+                   {"E_rp": 0.23, "E_bp": 0.28, "E_mp": 2.43, "E_odo": 1.99}, (-0.15, 1.25))
+    wrong = Solved({"E_rp": 83, "E_bp": 48, "E_mp": 449, "E_odo": 11},
+                   {"E_rp": 0.26, "E_bp": 0.20, "E_mp": 2.07, "E_odo": 3.34}, (14.79, 2.62))
+    assert cost_gap(right, wrong) == pytest.approx(16 - 43 - 92 / 2.07**2 + 7 / 1.99**2)
+    chosen, refusal = settle_naming(right, wrong, ["view2"], sightings_prefer_second=True)
+    assert refusal is not None and "give planes 14.9 deg apart in CTR" in refusal
+    # Residuals within their sigma: the costs compare as they are (the drawn contours'
+    # cases, where wrong namings cost 110-1,300 more).
+    for solved in (right, wrong):
+        solved.residual_rms = dict.fromkeys(solved.term_costs, 0.9)
+    assert cost_gap(right, wrong) == pytest.approx(-112)
+    assert settle_naming(right, wrong, ["view2"], sightings_prefer_second=True) == (wrong, None)
 
 
 def test_pins_one_behind_the_other_are_measured_as_overlapping(phantom_plan):
