@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slamtka.solver import gates
-from slamtka.solver.diagnostics import outline_fits
+from slamtka.solver.diagnostics import OutlineFit, outline_fits
 from slamtka.solver.measurement import fit_resection_plane
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.optimizer import (
@@ -76,7 +76,7 @@ class StageRunner:
 
     def __init__(self, problem: JointProblem, initial: InitialGuess,
                  callback: Callable[[str, IterationInfo], None] | None):
-        self.problem, self.callback = problem, callback
+        self.problem, self.callback, self.initial = problem, callback, initial
         self.schedule = SCHEDULES[problem.config.method]
         self.odometry = problem.odometry_terms(initial) if self.schedule.odometry else []
         self.iterations, self.seconds = 0, 0.0
@@ -135,8 +135,15 @@ class StageRunner:
 
     def _bone(self, stage: Stage, result: StagesResult) -> tuple[StagesResult, bool]:
         """Views on the bone's silhouette, with a robust scale shrinking from wide to tight;
-        then the checks that need the views on the bone. True when the solve stops here."""
+        then the checks that need the views on the bone. True when the solve stops here.
+
+        Where the bone still lies off its contour, its edges are sought near the model's
+        outline (:meth:`_bone_edges_sought`): from the poses reached, then from the aligned
+        ones (foreign edges in a poor contour, a femur's or a retractor's, may have pulled a
+        view further off than the alignment left it), each time with the views that still
+        lie off carried from the best-fitting one by the encoders' motion (:meth:`_carried`)."""
         p, c = self.problem, self.problem.config
+        original, aligned = p, result.state
         state = result.state
         for scale in c.schedule.coarse_loss_scales:
             terms = p.silhouette_terms(stage.labels, 1.0, RobustLoss("cauchy", scale),
@@ -144,10 +151,20 @@ class StageRunner:
                                        thinned=stage.thinned)
             state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
                                self._options(stage), f"{stage.name} x{scale:g}")
-        p, astray = self._judged_bone(stage, state)
+        p, fits, astray = self._judged_bone(stage, state)
         if astray is not None and any(view.bone_edge_search for view in p.views):
-            state = self._bone_edges_sought(stage, state)
-            p, astray = self._judged_bone(stage, state)
+            for start in (aligned, state):
+                if start is aligned:  # the edges the views dropped there may be the bone's
+                    self.problem = original
+                state = self._bone_edges_sought(stage, start)
+                p, fits, astray = self._judged_bone(stage, state)
+                carried = self._carried(state, fits) if astray is not None else None
+                if carried is not None:
+                    self.problem = original
+                    state = self._bone_edges_sought(stage, carried)
+                    p, fits, astray = self._judged_bone(stage, state)
+                if astray is None:
+                    break
         if astray is not None:
             # Lost already: the caller may restart from a global search at once.
             final = list[Term](p.silhouette_terms(stage.labels, 1.0, self._tight()))
@@ -160,13 +177,33 @@ class StageRunner:
             log.info("view %s: the pin labels were swapped to match the other views", view_id)
         return StagesResult(state, result.terms, result.report), False
 
-    def _judged_bone(self, stage: Stage, state: State) -> tuple[JointProblem, str | None]:
-        """The problem without the foreign edges the views on the bone show, and why the
-        bone still lies off its contour in some view (None: it does not)."""
+    def _judged_bone(self, stage: Stage, state: State
+                     ) -> tuple[JointProblem, tuple[OutlineFit, ...], str | None]:
+        """The problem without the foreign edges the views on the bone show, the bone's
+        outline fits, and why the bone still lies off its contour in some view (None: it
+        does not)."""
         p = self.problem = self._attributed(stage, state)
         limits = p.config.gates
-        return p, gates.outline_misfit(outline_fits(p, state, stage.labels),
-                                       limits.max_coarse_bone_median_px, limits)
+        fits = outline_fits(p, state, stage.labels)
+        return p, fits, gates.outline_misfit(fits, limits.max_coarse_bone_median_px, limits)
+
+    def _carried(self, state: State, fits: tuple[OutlineFit, ...]) -> State | None:
+        """``state`` with every view but the one whose bone fits best carried from that one
+        by the encoders' motion between them, when that one fits (None otherwise).
+
+        A view whose contour is mostly foreign edges (the femur's, a retractor's) can hold
+        its pose off the bone while the other view lies on it; the encoders say where the
+        first must then be, and its edges are sought from there."""
+        limit = self.problem.config.gates.max_coarse_bone_median_px
+        bone = {fit.view_id: fit.median_px for fit in fits if fit.label == "bone"}
+        ids = [view.view_id for view in self.problem.views]
+        if len(bone) < len(ids) or min(bone.values()) > limit:
+            return None
+        k = ids.index(min(bone, key=lambda view_id: bone[view_id]))
+        keys, given = self.problem.view_keys, self.initial.T_cam_tibia
+        poses = {key: given[j] @ given[k].inverse() @ state.poses[keys[k]]
+                 for j, key in enumerate(keys) if j != k}
+        return state.with_poses(poses)
 
     def _bone_edges_sought(self, stage: Stage, state: State) -> State:
         """The bone's edges sought again in each frame near the model's outline, from as
