@@ -49,7 +49,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.edges import (
@@ -668,6 +667,21 @@ def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
     return 2.0 * float(np.median(sides)) if len(sides) else 2.0 * bar.half_width
 
 
+def _medians(values: np.ndarray, labels: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The median of ``values`` over each label that ``chosen`` (by label) marks, 0 for the
+    others: one sort of their pixels by label and value (scipy's per-label median took
+    0.2 s a frame)."""
+    inside = chosen[labels]
+    which, value = labels[inside], values[inside]
+    order = np.lexsort((value, which))
+    which, value = which[order], value[order]
+    shadows = np.flatnonzero(chosen)
+    middle = (np.searchsorted(which, shadows) + np.searchsorted(which, shadows, side="right") - 1) // 2
+    medians = np.zeros(len(chosen))
+    medians[shadows] = value[middle]
+    return medians
+
+
 def _clipped(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
     """Pixels at the frame's most attenuating level, above the field's typical level (a
     window clipped them), where at least a pin's least area is: a noisy frame that is not
@@ -711,9 +725,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     # and where it clips part of one pin the other's peak is a third of it (processing
     # seed 28: 8.7 against 3.4, medians 3.0 and 2.5).
     if good.any():
-        shadows = np.flatnonzero(good)
-        typical = np.zeros(count)
-        typical[shadows] = ndimage.median(excess, labels, shadows)
+        typical = _medians(excess, labels, good)
         good &= typical >= _PIN_PEAK_SHARE * typical.max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = outline_with_normals(mask, 10)
