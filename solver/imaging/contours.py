@@ -336,8 +336,7 @@ _SIDE_SPAN = 0.8  # of the bar's length, about its centre: a head on an end is l
 
 
 def _side_wander(bar: _Bar, pixels: np.ndarray) -> float:
-    """How far (median px) the wavier long side of a shadow's pixels lies from its line,
-    fitted again without the points far off the first fit (a local bulge)."""
+    """How far (median px) the wavier long side of a shadow's pixels lies from its line."""
     n = np.array([-bar.direction[1], bar.direction[0]])
     along, across = (pixels - bar.centre) @ bar.direction, (pixels - bar.centre) @ n
     inner = np.abs(along) < _SIDE_SPAN * bar.half_length
@@ -350,12 +349,15 @@ def _side_wander(bar: _Bar, pixels: np.ndarray) -> float:
     seen = np.flatnonzero(np.isfinite(low))
     if len(seen) < 4:
         return 0.0
+    # Each side's line passes through the medians of its two halves: a head wider than the
+    # shaft, or a bulge into a bone's edge, holds less than half of either.
+    half = seen < np.median(seen)
     wander = 0.0
     for side in (low[seen], high[seen]):
-        off = np.abs(side - np.polyval(np.polyfit(seen, side, 1), seen))
-        near = off <= max(3.0 * float(np.median(off)), 0.5)
-        off = np.abs(side - np.polyval(np.polyfit(seen[near], side[near], 1), seen))
-        wander = max(wander, float(np.median(off)))
+        (x0, y0), (x1, y1) = ((float(np.median(seen[part])), float(np.median(side[part])))
+                              for part in (half, ~half))
+        line = y0 + (seen - x0) * (y1 - y0) / max(x1 - x0, 1e-9)
+        wander = max(wander, float(np.median(np.abs(side - line))))
     return wander
 
 
