@@ -325,6 +325,45 @@ def _robust_width(bar: _Bar, points: np.ndarray) -> float:
     return 4.0 * float(np.median(np.abs(across)))
 
 
+# A pin's shadow is bounded by two straight lines. The dark band that a C-arm's unsharp
+# masking leaves along a bone's edge (the plateau, a cortex) is as wide and as long, but
+# follows the bone's curve: its sides lie a median 1.2-3.9 px from their lines where a
+# single pin's lie within 0.5 px, even where its mask bulges into a bone's edge over a
+# part of its length (processing seeds 0, 2, 10, 11, 19, 27), and 0.9 px where it crosses
+# a retractor blade (retractors seed 26). Asked of parallel pairs
+# only: pins seen nearly end-on are short and their heads hold much of them, and a
+# converging pair has tests of its own (operating-room seed 8).
+_PIN_SIDE_WANDER_PX = 1.0
+_SIDE_SLICE_PX = 3.0  # the sides are read in slices this long across the bar
+_SIDE_SPAN = 0.8  # of the bar's length, about its centre: a head on an end is left out
+
+
+def _side_wander(bar: _Bar, pixels: np.ndarray) -> float:
+    """How far (median px) the wavier long side of a shadow's pixels lies from its line."""
+    n = np.array([-bar.direction[1], bar.direction[0]])
+    along, across = (pixels - bar.centre) @ bar.direction, (pixels - bar.centre) @ n
+    inner = np.abs(along) < _SIDE_SPAN * bar.half_length
+    if np.count_nonzero(inner) < 2:
+        return 0.0
+    slices = ((along[inner] + bar.half_length) / _SIDE_SLICE_PX).astype(int)
+    low, high = np.full(slices.max() + 1, np.inf), np.full(slices.max() + 1, -np.inf)
+    np.minimum.at(low, slices, across[inner])
+    np.maximum.at(high, slices, across[inner])
+    seen = np.flatnonzero(np.isfinite(low))
+    if len(seen) < 4:
+        return 0.0
+    # Each side's line passes through the medians of its two halves: a head wider than the
+    # shaft, or a bulge into a bone's edge, holds less than half of either.
+    half = seen < np.median(seen)
+    wander = 0.0
+    for side in (low[seen], high[seen]):
+        (x0, y0), (x1, y1) = ((float(np.median(seen[part])), float(np.median(side[part])))
+                              for part in (half, ~half))
+        line = y0 + (seen - x0) * (y1 - y0) / max(x1 - x0, 1e-9)
+        wander = max(wander, float(np.median(np.abs(side - line))))
+    return wander
+
+
 def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
                    expected: np.ndarray | None = None, least_length: float = 0.0
                    ) -> tuple[int, int] | None:
@@ -336,6 +375,7 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
     best, best_cost = None, np.inf
     widths_px = [_robust_width(bar, points) for bar, points in fitted]
     long = [2.0 * bar.half_length >= least_length for bar, _ in fitted]
+    straight = [_side_wander(bar, points) <= _PIN_SIDE_WANDER_PX for bar, points in fitted]
     where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
@@ -348,6 +388,8 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
                     or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
             if angle <= _PAIR_MAX_ANGLE_DEG:
+                if not (straight[i] and straight[j]):
+                    continue  # bands along a bone's edge, side by side, not pins
                 bent = angle / _PAIR_MAX_ANGLE_DEG
             else:
                 converging = _converging(fitted[i][0], fitted[j][0])
@@ -440,7 +482,7 @@ _PIN_ELONGATION = 3.0
 _PIN_FILL = 0.7
 _PIN_UNION_WIDTH = 1.8  # two pins side by side: at most this many widths wide
 _PIN_GROW_TO = 0.8  # excess to which an unscattered steel shadow is grown
-_PIN_PEAK_SHARE = 0.5  # of the strongest bar's peak excess, that another bar must reach
+_PIN_PEAK_SHARE = 0.5  # of the strongest bar's median excess, that another bar must reach
 
 
 # With the plan's pin projected at the initial pose, a shadow's width is known to about
@@ -636,6 +678,34 @@ def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
     return 2.0 * float(np.median(sides)) if len(sides) else 2.0 * bar.half_width
 
 
+def _medians(values: np.ndarray, labels: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The median of ``values`` over each label that ``chosen`` (by label) marks, 0 for the
+    others: one sort of their pixels by label and value (scipy's per-label median took
+    0.2 s a frame)."""
+    inside = chosen[labels]
+    which, value = labels[inside], values[inside]
+    order = np.lexsort((value, which))
+    which, value = which[order], value[order]
+    shadows = np.flatnonzero(chosen)
+    middle = (np.searchsorted(which, shadows) + np.searchsorted(which, shadows, side="right") - 1) // 2
+    medians = np.zeros(len(chosen))
+    medians[shadows] = value[middle]
+    return medians
+
+
+def _clipped(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
+    """Pixels at the frame's most attenuating level, above the field's typical level (a
+    window clipped them), where at least a pin's least area is: a noisy frame that is not
+    clipped reaches its top in a few pixels only."""
+    inside = A[valid]
+    if inside.size == 0:
+        return np.zeros_like(valid)
+    clipped = valid & (A >= inside.max())
+    if np.count_nonzero(clipped) < config.pin_min_area_px:
+        return np.zeros_like(valid)
+    return clipped
+
+
 def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourConfig,
           expected: np.ndarray | None, expected_width_px: float | None,
           expected_length_px: float | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
@@ -646,21 +716,28 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     # Scatter adds to what passes steel and bone alike, so steel's excess over its
     # surroundings shrinks (to ~0.6 at a scatter-to-primary of 1): a shadow is grown from
     # its seeds down to half of its own peak excess where that is below _PIN_GROW_TO.
-    strong = excess > config.pin_threshold
+    # A C-arm's window may clip steel at the frame's most attenuating level: the pins are
+    # then flat at that level, and their excess is only how far the bone or tissue under
+    # each lies below it (processing seed 10: 0.52 and 0.34). What the frame shows as
+    # opaque as it can show anything seeds a shadow too; its shape decides.
+    clipped = _clipped(A, valid, config)
+    strong = (excess > config.pin_threshold) | clipped
     count, components = cv2.connectedComponents(strong.astype(np.uint8), connectivity=8)
     seeds = np.asarray(components, np.int32)
     peak = np.zeros(count, np.float32)
     np.maximum.at(peak, seeds[strong], excess[strong])
     reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))
-    weak = (excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)
+    weak = ((excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)) | clipped
     count, labels, stats, _ = cv2.connectedComponentsWithStats(weak.astype(np.uint8), connectivity=8)
     good = _pin_like(labels, count, widths, config)
     count, good = _split_crossed(labels, stats, good, widths, config)
     # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
-    tops = np.zeros(count, np.float32)
-    np.maximum.at(tops, labels[weak], excess[weak])
+    # Each bar's typical excess, not its peak: a C-arm's window clips the darkest pixels,
+    # and where it clips part of one pin the other's peak is a third of it (processing
+    # seed 28: 8.7 against 3.4, medians 3.0 and 2.5).
     if good.any():
-        good &= tops >= _PIN_PEAK_SHARE * tops[good].max()
+        typical = _medians(excess, labels, good)
+        good &= typical >= _PIN_PEAK_SHARE * typical.max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
