@@ -126,6 +126,16 @@ def test_one_bar_is_not_cut_into_two_pins_shorter_than_a_pin_can_be(phantom_plan
     assert found.diagnostics["pins_found"] < 2 and "pins_overlap" not in found.diagnostics
 
 
+def test_a_shadow_a_pixel_thin_holds_no_straight_pieces():
+    """A real tibia's operating-room frame (seed 24, view 1) had a steel-like shadow one
+    pixel high; halving it for the line openings raised OpenCV's empty-size error."""
+    from slamtka.solver.imaging.contours import _PinWidths, _straight_pieces
+
+    config = ContourConfig()
+    for shape in ((1, 40), (40, 1), (1, 1)):
+        assert _straight_pieces(np.ones(shape, bool), _PinWidths.of(config, None), config) == []
+
+
 def test_contours_of_an_inverted_frame_and_pin_labels_from_the_expected_positions(radiographs):
     _, frames = radiographs
     r = frames[1]

@@ -556,7 +556,10 @@ def _straight_pieces(shadow: np.ndarray, widths: _PinWidths, config: ContourConf
     """Pin-shaped straight bars inside a steel shadow that is not one bar (a pin crossed or
     touched by a retractor blade seen edge-on, both pins across one blade), as pixel masks
     of ``shadow``'s shape: what survives an opening by a line longer than any crossing
-    bar is wide, in the direction of the bar, taken greedily from the largest."""
+    bar is wide, in the direction of the bar, taken greedily from the largest. A shadow a
+    pixel thin holds none, and has no half size (a real tibia's operating-room frame had one)."""
+    if min(shadow.shape) < 2:
+        return []
     half = cv2.resize(shadow.astype(np.uint8), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_NEAREST)
     length = int(config.pin_width_px[1]) | 1  # twice the widest pin, at half size
     pieces: list[tuple[int, np.ndarray, int]] = []  # (area, labels, label) at half size
