@@ -742,6 +742,11 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
     assert settle_naming(wrong, Solved(900.0, None, Why.NOT_CONVERGED), ["view2"]) == (wrong, None)
     assert settle_naming(wrong, Solved(900.0, None, Why.DEGENERATE), ["view2"]) == (wrong, None)
     assert settle_naming(right, Solved(1300.0, None), ["view2"]) == (right, None)
+    # Refused at a gate, fitting worse by 150: the first stands, unless the pins' sightings
+    # favour the refused naming (then it must fit worse by 200).
+    assert settle_naming(wrong, Solved(1450.0, None), ["view2"]) == (wrong, None)
+    chosen, refusal = settle_naming(wrong, Solved(1450.0, None), ["view2"], sightings_prefer_second=True)
+    assert chosen is wrong and refusal is not None and "fits as well" in refusal
     chosen, refusal = settle_naming(wrong, Solved(1200.0, None), ["view2"])
     assert chosen is wrong and refusal is not None and refusal.startswith(
         "the two pins cannot be told apart in view view2: the other naming fits as well "
