@@ -35,8 +35,9 @@ _SWAP_MIN_MM = 1.0
 # "Pin naming"). On frames the costs are compared in units of the fits' own dispersion
 # (:func:`cost_gap`): a headed-pin case's wrong naming cost 91-112 less than the right one,
 # most of it in the model-projection term, whose residuals were 2.1-2.4 sigma RMS under
-# either naming (a headless pin model fitted to headed pins); measured 14.9 deg off at level 3. Closer than this, both namings must
-# give the same plane within the tolerance, else there is no answer.
+# either naming (a headless pin model fitted to headed pins); it was measured 14.9 deg off
+# at level 3. Closer than this, both namings must give the same plane within the
+# tolerance, else there is no answer.
 NAMING_MIN_COST_GAP = 100.0
 # gates.Why.GATE_FAILED (the contours do not fit, the pins are not parallel): the kind of
 # refusal of another naming that does not let the first stand (gates imports this module).

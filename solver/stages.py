@@ -138,10 +138,11 @@ class StageRunner:
         then the checks that need the views on the bone. True when the solve stops here.
 
         Where the bone still lies off its contour, its edges are sought near the model's
-        outline (:meth:`_bone_edges_sought`): from the poses reached, then from the aligned
-        ones (foreign edges in a poor contour, a femur's or a retractor's, may have pulled a
-        view further off than the alignment left it), each time with the views that still
-        lie off carried from the best-fitting one by the encoders' motion (:meth:`_carried`)."""
+        outline (:meth:`_bone_edges_sought`): from the aligned poses first (foreign edges in
+        a poor contour, a femur's or a retractor's, may have pulled a view further off than
+        the alignment left it), then from the poses the fit reached, each time with the
+        views that still lie off carried from the best-fitting one by the encoders' motion
+        (:meth:`_carried`)."""
         p, c = self.problem, self.problem.config
         original, aligned = p, result.state
         state = result.state
@@ -152,8 +153,9 @@ class StageRunner:
             state, _ = self.lm(terms + self._odometry(stage), state, self._held(stage),
                                self._options(stage), f"{stage.name} x{scale:g}")
         p, fits, astray = self._judged_bone(stage, state)
+        fitted = state
         if astray is not None and any(view.bone_edge_search for view in p.views):
-            for start in (aligned, state):
+            for start in (aligned, fitted):
                 if start is aligned:  # the edges the views dropped there may be the bone's
                     self.problem = original
                 state = self._bone_edges_sought(stage, start)

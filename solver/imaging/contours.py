@@ -330,9 +330,9 @@ def _robust_width(bar: _Bar, points: np.ndarray) -> float:
 # follows the bone's curve: its sides lie a median 1.2-3.9 px from their lines where a
 # single pin's lie within 0.5 px, even where its mask bulges into a bone's edge over a
 # part of its length (processing seeds 0, 2, 10, 11, 19, 27), and 0.9 px where it crosses
-# a retractor blade (retractors seed 26). Asked of parallel pairs
-# only: pins seen nearly end-on are short and their heads hold much of them, and a
-# converging pair has tests of its own (operating-room seed 8).
+# a retractor blade (retractors seed 26). Asked of parallel pairs only: pins seen nearly
+# end-on are short and their heads hold much of them, and a converging pair has tests of
+# its own (operating-room seed 8).
 _PIN_SIDE_WANDER_PX = 1.0
 _SIDE_SLICE_PX = 3.0  # the sides are read in slices this long across the bar
 _SIDE_SPAN = 0.8  # of the bar's length, about its centre: a head on an end is left out
@@ -649,9 +649,8 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     its sides) and each as long as a pin can be (``least_length``: one pin's shadow with no
     step on its sides, the other pin missed, is not cut into two half pins; patella seeds 0
     and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its bars, how they
-    overlap and its edge points. All are tried: two
-    pins in line across three blades are a smaller shadow than the blades' strips
-    (retractors seed 22, view 2). If none splits, whether one came out as a single bar
+    overlap and its edge points. All are tried: two pins in line across three blades are a
+    smaller shadow than the blades' strips (retractors seed 22, view 2). If none splits, whether one came out as a single bar
     wider than a pin but no wider than two side by side: pins seen one behind the other,
     their edges offset by a few px, that cannot be told apart (views seed 5 view 2,
     operating-room seed 13 view 2)."""
