@@ -15,7 +15,8 @@ SYSTEM_TOOLS := storescu echoscu dsrdump dciodvfy
 
 .PHONY: demo test test-system lint typecheck bench clean lock sbom audit
 
-$(STAMP): pyproject.toml $(LOCK)
+# The solver's C kernels are built by the install (setup.py), so their source is a prerequisite.
+$(STAMP): pyproject.toml setup.py solver/_kernels.c $(LOCK)
 	@missing=""; for t in $(SYSTEM_TOOLS); do command -v $$t >/dev/null || missing=1; done; \
 	if [ -n "$$missing" ]; then \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
@@ -73,4 +74,4 @@ audit: $(TOOLS)/.installed
 	  --vulnerability-service $(AUDIT_SERVICE) --progress-spinner off
 
 clean:
-	rm -rf $(VENV) bench-out .pytest_cache $(TOOLS) $(SBOM)
+	rm -rf $(VENV) bench-out .pytest_cache $(TOOLS) $(SBOM) solver/_kernels.*.so

@@ -51,7 +51,6 @@ from slamtka.service.refusals import Refusal, RefusalCode
 from slamtka.service.results import MeasurementResult, build_result
 from slamtka.service.sender import OutgoingObject
 from slamtka.service.spool import Spool
-from slamtka.solver import kernels
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
 from slamtka.solver.imaging.calibration_file import Calibration
@@ -189,9 +188,7 @@ class Pipeline:
 
     def warm_up(self) -> None:
         """Build a throwaway report and image once, so that the first case does not pay for
-        loading and initialising the DICOM builders (about half a second), and compile the
-        solver's kernels (about two seconds the first time)."""
-        kernels.warm_up()
+        loading and initialising the DICOM builders (about half a second)."""
         source = encode_frame(Frame(np.zeros((8, 8), np.uint16), (0.2, 0.2), patient_id="WARMUP",
                                     acquisition_datetime=datetime.now(UTC)))
         now = datetime.now(UTC)

@@ -7,6 +7,7 @@ from slamtka.solver.kernels import (
     bilinear,
     contour_generators,
     coupling_blocks,
+    footprint_mask,
     in_field,
     nearest_points,
     outline_samples,
@@ -261,3 +262,34 @@ def test_point_steps_are_the_back_substitution_of_the_pose_steps():
     coupled = np.einsum("xaij,xai->xj", W, d_p_ext[pose_of])
     expected = -np.einsum("xij,xj->xi", V_inv, g_x + coupled)
     np.testing.assert_allclose(point_steps(W, pose_of, d_p, V_inv, g_x), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_bad_input_raises_named_errors_never_crashes():
+    """Out-of-range indices, float indices, wrong shapes, non-finite outlines and in-place
+    outputs that a copy would detach are refused with an exception; other element types
+    and layouts are converted."""
+    rng = np.random.default_rng(8)
+    with pytest.raises(IndexError, match="scatter_add"):
+        scatter_add(np.array([0, 5]), np.ones((2, 1)), 3)
+    with pytest.raises(IndexError, match="silhouette_rows"):
+        silhouette_rows(np.ones((2, 3)), 1.0, 1.0, 0.0, 0.0, 1.0, np.zeros((4, 4), np.float32),
+                        np.zeros(2), np.array([2]), np.zeros(0, np.int64), np.zeros((0, 2)), True)
+    with pytest.raises(TypeError, match="ids"):
+        surface_rows(np.zeros((2, 2, 2)), np.zeros(3), 1.0, np.zeros((3, 3)), np.array([0.5]),
+                     np.zeros((1, 3)), np.ones((1, 3)), False)
+    with pytest.raises(ValueError, match="uv"):
+        bilinear(np.zeros((4, 4)), np.zeros(2), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="not finite"):
+        footprint_mask(np.array([[np.nan, 0.0]]), np.ones((1, 2)), 4, 4)
+    with pytest.raises(ValueError, match="no points"):
+        nearest_points(np.zeros((0, 2)), np.zeros((1, 2)), 1.0)
+    with pytest.raises(TypeError, match="H_xx"):  # a converted copy would lose the sums
+        point_blocks(np.ones((1, 1, 3)), np.ones(1), np.ones((1, 1)), np.zeros(1, np.int64),
+                     np.ones((1, 3, 3), np.float32), np.ones((1, 3)))
+    uv = rng.uniform(0.0, 3.0, (5, 4))[:, ::2]  # strided, and as float32 below
+    expected = bilinear(np.arange(16.0).reshape(4, 4), np.zeros(2), np.ascontiguousarray(uv))
+    for values, points in ((np.arange(16).reshape(4, 4), uv),
+                           (np.arange(16.0).reshape(4, 4), uv.astype(np.float32))):
+        found = bilinear(values, np.zeros(2), points)
+        np.testing.assert_allclose(found[0], expected[0], rtol=1e-6)
+    assert np.isnan(trilinear(np.zeros((2, 2, 2)), np.zeros(3), 1.0, np.array([[np.nan, 0.0, 0.0]]), True)[0][0])

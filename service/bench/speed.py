@@ -25,7 +25,6 @@ import numpy as np
 
 from slamtka.sim.bone_phantom import phantom_plan
 from slamtka.sim.simulate import SimulationConfig, simulate_case
-from slamtka.solver import kernels
 from slamtka.solver.plan import Plan
 from slamtka.solver.slam import SolverConfig, solve_joint
 
@@ -81,12 +80,11 @@ def _table(runs: list[dict], peak_mb: float, rss_mb: float) -> str:
 
 def warmed_plan(args: argparse.Namespace) -> Plan:
     """The plan of ``--tibia``, ``--fibula``, ``--landmarks`` (the phantom without), its
-    models built and the kernels compiled, as the service has them once started."""
+    models built, as the service has them once started."""
     plan = phantom_plan() if args.tibia is None else Plan.from_meshes(args.tibia, args.fibula,
                                                                       args.landmarks)
     plan.bone_model()
     plan.pin_model()
-    kernels.warm_up()
     return plan
 
 
