@@ -695,6 +695,99 @@ def _medians(values: np.ndarray, labels: np.ndarray, chosen: np.ndarray) -> np.n
     return medians
 
 
+# Behind steel the detector sees the scatter, the light of the surroundings blurred: beside
+# the air by the leg it is high, and a pin's excess over its background falls there. One
+# pin's shadow was cut in two where its excess dipped below half its peak (scatter seeds 1,
+# 10, 11, 25: 0.36-0.45 in the gap against 0.5-0.8 along the rest), the shorter piece was
+# left out and the pin taken to end at the cut. Two pin-like shadows in line are one when
+# the gap between them is short and still a bar over its sides all along: pins end to end
+# leave tissue between them, as bright as beside them.
+_JOIN_MAX_ANGLE_DEG = 2.0
+_JOIN_MAX_OFFSET_WIDTHS = 0.25  # of the wider shadow: how far the shorter's axis may lie off the longer's
+_JOIN_MAX_GAP_WIDTHS = 3.0  # of the narrower shadow: the longest gap joined
+_JOIN_CONTRAST_SHARE = 0.5  # of the fainter shadow's typical excess: the gap's least over its sides
+_JOIN_SIDE_PX = (3.0, 9.0)  # the gap's sides are read this far beyond its edges
+
+
+def _gap_band(excess: np.ndarray, start: np.ndarray, stop: np.ndarray, width: float, beside: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along the gap from ``start`` to ``stop`` (a bar ``width`` wide), in slices of half a
+    pixel: the median excess inside the bar, and the higher median of its two sides (from
+    ``beside`` px off its line, clear of a wider shadow at either end); and the pixels (N,
+    2: row, column) of the bar."""
+    length = float(np.linalg.norm(stop - start))
+    e = (stop - start) / max(length, 1e-9)
+    m = np.array([-e[1], e[0]])
+    s = np.arange(0.0, length + 0.5, 0.5)
+    h, w = excess.shape
+
+    def sample(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = start + s[:, None, None] * e + t[None, :, None] * m
+        at = np.clip(np.round(p).astype(int), 0, [w - 1, h - 1])
+        return excess[at[..., 1], at[..., 0]], at[..., ::-1]
+
+    half = 0.5 * width - _JOIN_SIDE_PX[0]
+    middle = np.median(sample(np.arange(-half, half + 1e-9, 1.0))[0], axis=1)
+    outer = np.arange(beside, beside + _JOIN_SIDE_PX[1] - _JOIN_SIDE_PX[0] + 1e-9, 1.0)
+    sides = np.maximum(np.median(sample(outer)[0], axis=1), np.median(sample(-outer)[0], axis=1))
+    band = 0.5 * width + _JOIN_SIDE_PX[0]
+    return middle, sides, sample(np.arange(-band, band + 1e-9, 0.5))[1].reshape(-1, 2)
+
+
+def _join_in_line(labels: np.ndarray, good: np.ndarray, excess: np.ndarray, typical: np.ndarray
+                  ) -> bool:
+    """Join, in place, pin-like shadows that continue each other along one line across a
+    short gap where the steel's excess dipped (``labels`` relabelled, ``good`` updated);
+    returns whether any were joined."""
+    joined, refused = False, set()
+    bars = {}
+    while True:
+        for label in np.flatnonzero(good):
+            if label not in bars:
+                ys, xs = np.nonzero(labels == label)
+                pixels = np.column_stack([xs, ys]).astype(float)
+                bar = _fit_bar(pixels)
+                bars[label] = (bar, _robust_width(bar, pixels))
+        chosen = np.flatnonzero(good)
+        pair = next(((a, b) for i, a in enumerate(chosen) for b in chosen[i + 1:]
+                     if (a, b) not in refused and _in_line(*bars[a], *bars[b])), None)
+        if pair is None:
+            return joined
+        a, b = pair
+        (bar_a, width_a), (bar_b, width_b) = bars[a], bars[b]
+        toward = np.sign((bar_b.centre - bar_a.centre) @ bar_a.direction) * bar_a.direction
+        start = bar_a.centre + bar_a.half_length * toward
+        stop = bar_b.centre - bar_b.half_length * np.sign(toward @ bar_b.direction) * bar_b.direction
+        beside = 0.5 * max(width_a, width_b) + _off_axis(bar_a, bar_b) + _JOIN_SIDE_PX[0]
+        middle, sides, band = _gap_band(excess, start, stop, min(width_a, width_b), beside)
+        if np.min(middle - sides) < _JOIN_CONTRAST_SHARE * min(typical[a], typical[b]):
+            refused.add(pair)  # tissue between them: two shadows
+            continue
+        steel = band[(labels[band[:, 0], band[:, 1]] == 0)
+                     & (excess[band[:, 0], band[:, 1]] > 0.5 * float(np.median(middle)))]
+        labels[steel[:, 0], steel[:, 1]] = a
+        labels[labels == b] = a
+        good[b] = False
+        del bars[a]
+        joined = True
+
+
+def _off_axis(a: _Bar, b: _Bar) -> float:
+    """How far (px) the shorter bar's centre lies off the longer's axis."""
+    longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
+    return abs(float((shorter.centre - longer.centre) @ np.array([-longer.direction[1], longer.direction[0]])))
+
+
+def _in_line(a: _Bar, width_a: float, b: _Bar, width_b: float) -> bool:
+    """Whether two bars lie on one line, parallel, with a short gap between their ends."""
+    if np.degrees(np.arccos(min(abs(float(a.direction @ b.direction)), 1.0))) > _JOIN_MAX_ANGLE_DEG:
+        return False
+    longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
+    gap = abs(float((shorter.centre - longer.centre) @ longer.direction)) - longer.half_length - shorter.half_length
+    return (_off_axis(a, b) <= _JOIN_MAX_OFFSET_WIDTHS * max(width_a, width_b)
+            and 0.0 < gap <= _JOIN_MAX_GAP_WIDTHS * min(width_a, width_b))
+
+
 def _clipped(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
     """Pixels at the frame's most attenuating level, above the field's typical level (a
     window clipped them), where at least a pin's least area is: a noisy frame that is not
@@ -739,6 +832,8 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     # seed 28: 8.7 against 3.4, medians 3.0 and 2.5).
     if good.any():
         typical = _medians(excess, labels, good)
+        if _join_in_line(labels, good, excess, typical):
+            typical = _medians(excess, labels, good)
         good &= typical >= _PIN_PEAK_SHARE * typical.max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = outline_with_normals(mask, 10)
