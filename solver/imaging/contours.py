@@ -526,14 +526,22 @@ def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -
 def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: ContourConfig
               ) -> np.ndarray:
     """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
-    ys, xs = np.nonzero(labels)
-    order = np.argsort(labels[ys, xs], kind="stable")
-    pixels = np.column_stack([xs[order], ys[order]]).astype(float)
-    bounds = np.searchsorted(labels[ys[order], xs[order]], np.arange(count + 1))
     ok = np.zeros(count, bool)
-    for label in range(1, count):
-        ok[label] = _bar_shaped(pixels[bounds[label]:bounds[label + 1]], widths, config)
+    for label, pixels in _pixels_of(labels, np.arange(count) > 0).items():
+        ok[label] = _bar_shaped(pixels, widths, config)
     return ok
+
+
+def _pixels_of(labels: np.ndarray, chosen: np.ndarray) -> dict[int, np.ndarray]:
+    """The pixels (N, 2: column, row) of each label that ``chosen`` (by label) marks, from
+    one pass over the frame (a mask per label costs a pass each)."""
+    ys, xs = np.nonzero(chosen[labels])
+    which = labels[ys, xs]
+    order = np.argsort(which, kind="stable")
+    pixels = np.column_stack([xs[order], ys[order]]).astype(float)
+    labelled = np.flatnonzero(chosen)
+    bounds = np.searchsorted(which[order], np.append(labelled, labelled[-1] + 1) if len(labelled) else [])
+    return {int(label): pixels[bounds[k]:bounds[k + 1]] for k, label in enumerate(labelled)}
 
 
 _LINE_ANGLES_DEG = np.arange(0.0, 180.0, 10.0)
@@ -740,15 +748,9 @@ def _join_in_line(labels: np.ndarray, good: np.ndarray, excess: np.ndarray, typi
     short gap where the steel's excess dipped (``labels`` relabelled, ``good`` updated);
     returns whether any were joined."""
     joined, refused = False, set()
-    bars = {}
+    bars = {label: _bar_and_width(pixels) for label, pixels in _pixels_of(labels, good).items()}
     while True:
-        for label in np.flatnonzero(good):
-            if label not in bars:
-                ys, xs = np.nonzero(labels == label)
-                pixels = np.column_stack([xs, ys]).astype(float)
-                bar = _fit_bar(pixels)
-                bars[label] = (bar, _robust_width(bar, pixels))
-        chosen = np.flatnonzero(good)
+        chosen = [int(label) for label in np.flatnonzero(good)]
         pair = next(((a, b) for i, a in enumerate(chosen) for b in chosen[i + 1:]
                      if (a, b) not in refused and _in_line(*bars[a], *bars[b])), None)
         if pair is None:
@@ -768,8 +770,14 @@ def _join_in_line(labels: np.ndarray, good: np.ndarray, excess: np.ndarray, typi
         labels[steel[:, 0], steel[:, 1]] = a
         labels[labels == b] = a
         good[b] = False
-        del bars[a]
+        ys, xs = np.nonzero(labels == a)
+        bars[a] = _bar_and_width(np.column_stack([xs, ys]).astype(float))
         joined = True
+
+
+def _bar_and_width(pixels: np.ndarray) -> tuple[_Bar, float]:
+    bar = _fit_bar(pixels)
+    return bar, _robust_width(bar, pixels)
 
 
 def _off_axis(a: _Bar, b: _Bar) -> float:
