@@ -526,14 +526,22 @@ def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -
 def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: ContourConfig
               ) -> np.ndarray:
     """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
-    ys, xs = np.nonzero(labels)
-    order = np.argsort(labels[ys, xs], kind="stable")
-    pixels = np.column_stack([xs[order], ys[order]]).astype(float)
-    bounds = np.searchsorted(labels[ys[order], xs[order]], np.arange(count + 1))
     ok = np.zeros(count, bool)
-    for label in range(1, count):
-        ok[label] = _bar_shaped(pixels[bounds[label]:bounds[label + 1]], widths, config)
+    for label, pixels in _pixels_of(labels, np.arange(count) > 0).items():
+        ok[label] = _bar_shaped(pixels, widths, config)
     return ok
+
+
+def _pixels_of(labels: np.ndarray, chosen: np.ndarray) -> dict[int, np.ndarray]:
+    """The pixels (N, 2: column, row) of each label that ``chosen`` (by label) marks, from
+    one pass over the frame (a mask per label costs a pass each)."""
+    ys, xs = np.nonzero(chosen[labels])
+    which = labels[ys, xs]
+    order = np.argsort(which, kind="stable")
+    pixels = np.column_stack([xs[order], ys[order]]).astype(float)
+    labelled = np.flatnonzero(chosen)
+    bounds = np.searchsorted(which[order], np.append(labelled, labelled[-1] + 1) if len(labelled) else [])
+    return {int(label): pixels[bounds[k]:bounds[k + 1]] for k, label in enumerate(labelled)}
 
 
 _LINE_ANGLES_DEG = np.arange(0.0, 180.0, 10.0)
@@ -695,6 +703,99 @@ def _medians(values: np.ndarray, labels: np.ndarray, chosen: np.ndarray) -> np.n
     return medians
 
 
+# Behind steel the detector sees the scatter, the light of the surroundings blurred: beside
+# the air by the leg it is high, and a pin's excess over its background falls there. One
+# pin's shadow was cut in two where its excess dipped below half its peak (scatter seeds 1,
+# 10, 11, 25: 0.36-0.45 in the gap against 0.5-0.8 along the rest), the shorter piece was
+# left out and the pin taken to end at the cut. Two pin-like shadows in line are one when
+# the gap between them is short and still a bar over its sides all along: pins end to end
+# leave tissue between them, as bright as beside them.
+_JOIN_MAX_ANGLE_DEG = 2.0
+_JOIN_MAX_OFFSET_WIDTHS = 0.25  # of the wider shadow: how far the shorter's axis may lie off the longer's
+_JOIN_MAX_GAP_WIDTHS = 3.0  # of the narrower shadow: the longest gap joined
+_JOIN_CONTRAST_SHARE = 0.5  # of the fainter shadow's typical excess: the gap's least over its sides
+_JOIN_SIDE_PX = (3.0, 9.0)  # the gap's sides are read this far beyond its edges
+
+
+def _gap_band(excess: np.ndarray, start: np.ndarray, stop: np.ndarray, width: float, beside: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Along the gap from ``start`` to ``stop`` (a bar ``width`` wide), in slices of half a
+    pixel: the median excess inside the bar, and the higher median of its two sides (from
+    ``beside`` px off its line, clear of a wider shadow at either end); and the pixels (N,
+    2: row, column) of the bar."""
+    length = float(np.linalg.norm(stop - start))
+    e = (stop - start) / max(length, 1e-9)
+    m = np.array([-e[1], e[0]])
+    s = np.arange(0.0, length + 0.5, 0.5)
+    h, w = excess.shape
+
+    def sample(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = start + s[:, None, None] * e + t[None, :, None] * m
+        at = np.clip(np.round(p).astype(int), 0, [w - 1, h - 1])
+        return excess[at[..., 1], at[..., 0]], at[..., ::-1]
+
+    half = 0.5 * width - _JOIN_SIDE_PX[0]
+    middle = np.median(sample(np.arange(-half, half + 1e-9, 1.0))[0], axis=1)
+    outer = np.arange(beside, beside + _JOIN_SIDE_PX[1] - _JOIN_SIDE_PX[0] + 1e-9, 1.0)
+    sides = np.maximum(np.median(sample(outer)[0], axis=1), np.median(sample(-outer)[0], axis=1))
+    band = 0.5 * width + _JOIN_SIDE_PX[0]
+    return middle, sides, sample(np.arange(-band, band + 1e-9, 0.5))[1].reshape(-1, 2)
+
+
+def _join_in_line(labels: np.ndarray, good: np.ndarray, excess: np.ndarray, typical: np.ndarray
+                  ) -> bool:
+    """Join, in place, pin-like shadows that continue each other along one line across a
+    short gap where the steel's excess dipped (``labels`` relabelled, ``good`` updated);
+    returns whether any were joined."""
+    joined, refused = False, set()
+    bars = {label: _bar_and_width(pixels) for label, pixels in _pixels_of(labels, good).items()}
+    while True:
+        chosen = [int(label) for label in np.flatnonzero(good)]
+        pair = next(((a, b) for i, a in enumerate(chosen) for b in chosen[i + 1:]
+                     if (a, b) not in refused and _in_line(*bars[a], *bars[b])), None)
+        if pair is None:
+            return joined
+        a, b = pair
+        (bar_a, width_a), (bar_b, width_b) = bars[a], bars[b]
+        toward = np.sign((bar_b.centre - bar_a.centre) @ bar_a.direction) * bar_a.direction
+        start = bar_a.centre + bar_a.half_length * toward
+        stop = bar_b.centre - bar_b.half_length * np.sign(toward @ bar_b.direction) * bar_b.direction
+        beside = 0.5 * max(width_a, width_b) + _off_axis(bar_a, bar_b) + _JOIN_SIDE_PX[0]
+        middle, sides, band = _gap_band(excess, start, stop, min(width_a, width_b), beside)
+        if np.min(middle - sides) < _JOIN_CONTRAST_SHARE * min(typical[a], typical[b]):
+            refused.add(pair)  # tissue between them: two shadows
+            continue
+        steel = band[(labels[band[:, 0], band[:, 1]] == 0)
+                     & (excess[band[:, 0], band[:, 1]] > 0.5 * float(np.median(middle)))]
+        labels[steel[:, 0], steel[:, 1]] = a
+        labels[labels == b] = a
+        good[b] = False
+        ys, xs = np.nonzero(labels == a)
+        bars[a] = _bar_and_width(np.column_stack([xs, ys]).astype(float))
+        joined = True
+
+
+def _bar_and_width(pixels: np.ndarray) -> tuple[_Bar, float]:
+    bar = _fit_bar(pixels)
+    return bar, _robust_width(bar, pixels)
+
+
+def _off_axis(a: _Bar, b: _Bar) -> float:
+    """How far (px) the shorter bar's centre lies off the longer's axis."""
+    longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
+    return abs(float((shorter.centre - longer.centre) @ np.array([-longer.direction[1], longer.direction[0]])))
+
+
+def _in_line(a: _Bar, width_a: float, b: _Bar, width_b: float) -> bool:
+    """Whether two bars lie on one line, parallel, with a short gap between their ends."""
+    if np.degrees(np.arccos(min(abs(float(a.direction @ b.direction)), 1.0))) > _JOIN_MAX_ANGLE_DEG:
+        return False
+    longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
+    gap = abs(float((shorter.centre - longer.centre) @ longer.direction)) - longer.half_length - shorter.half_length
+    return (_off_axis(a, b) <= _JOIN_MAX_OFFSET_WIDTHS * max(width_a, width_b)
+            and 0.0 < gap <= _JOIN_MAX_GAP_WIDTHS * min(width_a, width_b))
+
+
 def _clipped(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndarray:
     """Pixels at the frame's most attenuating level, above the field's typical level (a
     window clipped them), where at least a pin's least area is: a noisy frame that is not
@@ -739,6 +840,8 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     # seed 28: 8.7 against 3.4, medians 3.0 and 2.5).
     if good.any():
         typical = _medians(excess, labels, good)
+        if _join_in_line(labels, good, excess, typical):
+            typical = _medians(excess, labels, good)
         good &= typical >= _PIN_PEAK_SHARE * typical.max()
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     points, normals = outline_with_normals(mask, 10)
