@@ -50,8 +50,12 @@ def input_refusal(d: InputDiagnostics, limits: GateLimits) -> tuple[Why, str] | 
     for label in PIN_LABELS:
         seen = sum(d.point_counts[k, label] >= limits.min_pin_points for k in range(n_views))
         if seen < 2:
-            why = "".join(f"; view {view_id}: {label} {notes[label]}"
-                          for view_id, notes in zip(d.view_ids, d.notes) if label in notes)
+            # Each view short of points named, with the extraction's note, else its count
+            # (operating-room seed 15: a pin 49% hidden left 26 points, fewer once thinned).
+            why = "".join(f"; view {view_id}: {label} " + (notes[label] if label in notes else
+                                                            f"has {d.point_counts[k, label]} contour points")
+                          for k, (view_id, notes) in enumerate(zip(d.view_ids, d.notes))
+                          if d.point_counts[k, label] < limits.min_pin_points)
             return Why.PIN_NOT_SEEN, (f"{label} is not seen in two views (needs >= "
                                       f"{limits.min_pin_points} contour points in each; seen in "
                                       f"{seen}){why}")

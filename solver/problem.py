@@ -225,7 +225,8 @@ class JointProblem:
             distances.append(_nearest_distances(outline, edges, 8.0) if len(outline) and len(edges)
                              else np.full(len(edges), np.inf))
         to_first, to_second = distances
-        clear = np.abs(to_first - to_second) >= self.config.sampling.pin_edge_ambiguity_px
+        with np.errstate(invalid="ignore"):  # both outlines empty (pins off the frame): neither
+            clear = np.abs(to_first - to_second) >= self.config.sampling.pin_edge_ambiguity_px
         return {"pin1": edges[clear & (to_first < to_second)], "pin2": edges[clear & (to_second < to_first)]}
 
     @staticmethod
