@@ -140,27 +140,6 @@ def test_pins_one_behind_the_other_in_one_view_are_measured():
 
 @pytest.mark.system
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
-def test_pins_given_one_bar_unnamed_are_measured():
-    """Headed pins seed 27: view 2 sees the pins one behind the other, one bar no split
-    made two pins of ("pin1 not found (no steel bar of a pin's shape)"). Given to the fit
-    unnamed and shared out from the first stage on, it measures."""
-    result = realism_case(("phantom", "headed_pins", 27, (1,), str(SHARED_DATA)))["levels"][1]
-    assert result["status"] == "success", result
-
-
-@pytest.mark.system
-@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
-def test_pins_ending_nearly_together_on_their_one_bar_are_refused():
-    """Surgeon's views seed 19: view 2 (-68 deg) sees the pins one behind the other in one
-    bar; fitted, their ends lie 0.4 pin diameters apart on it, and without the gate the case
-    was measured 1.06 deg off in CTR. It is refused naming the view."""
-    result = realism_case(("phantom", "views", 19, (1,), str(SHARED_DATA)))["levels"][1]
-    assert result["status"] == "refused", result
-    assert result["reason"].startswith("view view2: the pins seen one behind the other end nearly together")
-
-
-@pytest.mark.system
-@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_pins_in_line_and_on_each_other_in_every_view_are_refused():
     """Idealised seed 16: in both views the pins lie in line, one partly on the other, so
     each pin's inner end hides in the other's shadow. Shared out by the fit, the case was
