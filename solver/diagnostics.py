@@ -10,7 +10,7 @@ import numpy as np
 
 from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
 from slamtka.solver.measurement import pin_axis_points
-from slamtka.solver.observations import LABELS, ViewObservation
+from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
 from slamtka.solver.terms import BackProjectionTerm
@@ -71,11 +71,6 @@ class PinOverlap:
     # fit shared out: each pin's inner end hides in the other's shadow, and nothing of the
     # extraction's split says where, so the view cannot say how far apart the pins are.
     ends_hidden: bool = False
-    # In a view whose pins the extraction left unnamed in one bar: how far the pins stand
-    # out past the bar's ends (both ends summed), and how far the pins' ends stand apart
-    # at either end (the lesser), in projected pin diameters (None elsewhere).
-    bar_overhang: float | None = None
-    bar_stagger: float | None = None
 
 
 @dataclass(frozen=True)
@@ -176,24 +171,8 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
         ends_hidden = view.pin_edges is not None and share > 0 and all(
             bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True) <= reach))
             for i, j in ((0, 1), (1, 0)))
-        overhang, stagger = _bar_ends(view, axes, 2.0 * reach) if view.pins_unnamed else (None, None)
-        overlaps.append(PinOverlap(view.view_id, share, ends_hidden, overhang, stagger))
+        overlaps.append(PinOverlap(view.view_id, share, ends_hidden))
     return tuple(overlaps)
-
-
-def _bar_ends(view: ViewObservation, axes: list[np.ndarray], diameter_px: float) -> tuple[float, float]:
-    """How far the pins stand out past the ends of a view's one bar of unnamed pins (both
-    ends summed), and how far the pins' ends stand apart at either end (the lesser), in
-    projected pin diameters: along the first pin's projected axis, the bar's edges (as
-    extracted) against each pin's projected axis (``axes``, px)."""
-    direction = axes[0][-1] - axes[0][0]
-    direction = direction / max(float(np.linalg.norm(direction)), 1e-9)
-    edges = view.pin_edges if view.pin_edges is not None else view.contours["pin1"]
-    bar = np.percentile(edges @ direction, [0.5, 99.5])
-    spans = np.sort([[float(np.min(a @ direction)), float(np.max(a @ direction))] for a in axes], axis=0)
-    overhang = max(bar[0] - spans[0, 0], 0.0) + max(spans[1, 1] - bar[1], 0.0)
-    stagger = min(spans[1, 0] - spans[0, 0], spans[1, 1] - spans[0, 1])
-    return overhang / diameter_px, stagger / diameter_px
 
 
 def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDiagnostics:

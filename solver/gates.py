@@ -19,7 +19,7 @@ from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
 __all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
-           "odometry_misfit", "one_bar_unexplained", "outline_misfit", "pin_divergence", "pins_in_line", "pins_overlap",
+           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_in_line", "pins_overlap",
            "sought_edges_missing", "view_separation"]
 
 
@@ -141,30 +141,6 @@ def pins_in_line(d: SolveDiagnostics) -> str | None:
     return (f"views {', '.join(o.view_id for o in d.pin_overlaps)}: the two pins lie in line, one "
             "on the other, in every view, so no view shows how far apart they are; take a view "
             "from another angle")
-
-
-def one_bar_unexplained(d: SolveDiagnostics, limits: GateLimits) -> str | None:
-    """Why a view whose pins the extraction left unnamed in one bar does not show both
-    pins, or None. Two pins one behind the other make one bar that says how far apart they
-    are only where they are staggered along it: each pin's outer end is one of the bar's
-    ends, the other pin's end there a diameter or more inside it. Pins fitted ending
-    nearly together were measured wrong (surgeon's views seed 19: 1.06 deg off in CTR, their
-    ends 0.4 diameters apart). And one pin's bar, the other pin missed or hidden, cannot
-    hold two staggered pins: they stand out past its ends by as much as they are staggered."""
-    for overlap in d.pin_overlaps:
-        if overlap.bar_overhang is None or overlap.bar_stagger is None:
-            continue
-        if overlap.bar_stagger < limits.min_bar_stagger:
-            return (f"view {overlap.view_id}: the pins seen one behind the other end nearly "
-                    f"together on their one bar ({overlap.bar_stagger:.1f} pin diameters apart "
-                    f"< {limits.min_bar_stagger:g}), so it does not show how far apart they "
-                    "are; take that view from another angle")
-        if overlap.bar_overhang > limits.max_bar_overhang:
-            return (f"view {overlap.view_id}: the pins seen one behind the other stand out past "
-                    f"the ends of their one bar ({overlap.bar_overhang:.1f} pin diameters > "
-                    f"{limits.max_bar_overhang:g}): the bar is not both pins; take that view "
-                    "from another angle")
-    return None
 
 
 def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:

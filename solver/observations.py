@@ -178,10 +178,6 @@ class ViewObservation:
     # other's shadow). None: the extraction's names and contours stand.
     pin_edges: np.ndarray | None = None
     pins_visible: dict[str, VisibleRegion] | None = None
-    # The extraction found the pins one behind the other as one bar it could not split, and
-    # gave both pins all of its edges (opaque pins with the very same contour): which edge
-    # is which pin's is the fit's to say, from the first stage on; set from the contours.
-    pins_unnamed: bool = False
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -196,9 +192,6 @@ class ViewObservation:
             if not np.all(np.isfinite(pts)):
                 raise ValueError(f"view {self.view_id}: {label} contour has non-finite points")
             self.contours[label] = pts
-        first, second = (self.contours[label] for label in PIN_LABELS)
-        self.pins_unnamed = self.pins_unnamed or bool(
-            self.pins_opaque and len(first) and first.shape == second.shape and np.array_equal(first, second))
 
     def with_contours(self, **contours: np.ndarray) -> ViewObservation:
         """This view with some labels' contours replaced. A distance map depends on its
@@ -206,7 +199,7 @@ class ViewObservation:
         not replaced, and of a label handed another's very array (a swap of names)."""
         view = ViewObservation(self.view_id, self.camera, {**self.contours, **contours},
                                self.notes, self.bone_visible, self.bone_edge_search,
-                               self.pins_opaque, self.pin_edges, self.pins_visible, self.pins_unnamed)
+                               self.pins_opaque, self.pin_edges, self.pins_visible)
         for label in view.contours:
             given = contours.get(label, self.contours[label])
             built = [other for other, own in self.contours.items()

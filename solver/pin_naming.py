@@ -75,7 +75,7 @@ def naming_score(views: list[ViewObservation], T_cam_tibia: list[Pose] | tuple[P
                  pin_length_mm: float) -> float:
     """How badly the pins' sightings meet under the views' names, at these view poses (mm;
     the sum over both pins, see :func:`solver.triangulation.sighting_score`)."""
-    return sum(sighting_score([PinSighting(v.camera, T, v.contours[label], v.pins_unnamed)
+    return sum(sighting_score([PinSighting(v.camera, T, v.contours[label])
                                for v, T in zip(views, T_cam_tibia)], pin_length_mm)
                for label in PIN_LABELS)
 

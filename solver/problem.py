@@ -182,20 +182,17 @@ class JointProblem:
         extracted, both names pooled) goes to the pin whose outline at ``poses`` passes
         nearer, none to either where the two pass about as near; a pin's outline under the
         other pin's shadow has no edge to lie on and is not charged. A view shared once
-        stays shared, its edges shared out again at each call. A view whose pins the
-        extraction left unnamed (:attr:`ViewObservation.pins_unnamed`) is shared always."""
+        stays shared, its edges shared out again at each call."""
+        if not self.config.sampling.share_pin_edges:
+            return self, []
         views, shared = list(self.views), list[str]()
         for k, view in enumerate(self.views):
-            if not (view.pins_unnamed or self.config.sampling.share_pin_edges):
-                continue
             shadows = self._pin_shadows(k, poses) if view.pins_opaque else None
-            if shadows is None or (view.pin_edges is None and not view.pins_unnamed
-                                   and not self._touching(shadows)):
+            if shadows is None or (view.pin_edges is None and not self._touching(shadows)):
                 continue
             edges = view.pin_edges
             if edges is None:
-                edges = (view.contours["pin1"] if view.pins_unnamed
-                         else np.vstack([view.contours[label] for label in PIN_LABELS]))
+                edges = np.vstack([view.contours[label] for label in PIN_LABELS])
             views[k] = replace(view.with_contours(**self._shared_out(k, edges, poses)), pin_edges=edges,
                                pins_visible=self._outside_other_shadow(shadows))
             shared.append(view.view_id)
@@ -280,9 +277,7 @@ class JointProblem:
             return self, [], []
         length, view_poses = self.plan.pin_length(), [poses[key] for key in self.view_keys]
         views, swapped, unclear = list(self.views), list[str](), list[str]()
-        # A view whose pins are unnamed has no names to swap, nor can it tell another's.
-        named = [k for k, view in enumerate(views) if not view.pins_unnamed]
-        for k in named[1:]:
+        for k in range(1, len(views)):
             trial = views[:k] + [swap_pins(views[k])] + views[k + 1:]
             kept, changed = naming_score(views, view_poses, length), naming_score(trial, view_poses, length)
             if swap_pays(kept, changed):
@@ -298,8 +293,7 @@ class JointProblem:
         pins = {}
         for key in self.pin_keys:
             current = poses[key]
-            sightings = [PinSighting(view.camera, poses[view_key(k)], self.pixels[k, key.label],
-                                     view.pins_unnamed)
+            sightings = [PinSighting(view.camera, poses[view_key(k)], self.pixels[k, key.label])
                          for k, view in enumerate(self.views)]
             pins[key] = triangulate_pin(sightings, current, self.plan.pin_length()) or current
         return pins

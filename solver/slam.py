@@ -276,7 +276,7 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         if overlapping is not None:
             why, misfit = Why.PINS_INDISTINCT, f"{overlapping} ({misfit})"
         return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
-    in_line = gates.pins_in_line(d) or gates.one_bar_unexplained(d, limits)
+    in_line = gates.pins_in_line(d)
     if in_line is not None:
         return _refused(problem, Why.PINS_INDISTINCT, in_line, state, report, rms, start)
     too_close = gates.view_separation(d, limits)

@@ -87,10 +87,6 @@ class GateLimits:
     min_sought_edge_share: float = 0.5  # of the outline, where its edges were sought near it
     min_visible_outline_share: float = 0.4
     max_pin_overlap_share: float = 0.6
-    # A view's one bar of unnamed pins (gates.one_bar_unexplained), in pin diameters: the
-    # pins' ends this far apart at either end, standing out past the bar's by this at most.
-    min_bar_stagger: float = 1.0
-    max_bar_overhang: float = 0.75
     max_angle_sigma_deg: float = 2.0
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from slamtka.bench.realism import SHARED_DATA, _expected_pins, _scores, realism_case
+from slamtka.bench.realism import SHARED_DATA, _scores, realism_case
 from slamtka.service.cli import main
 from slamtka.sim.operating_room import (
     NUISANCES,
@@ -221,33 +221,6 @@ def test_pins_seen_one_behind_the_other_are_refused_naming_the_view():
     result = row["levels"][1]
     assert result["status"] == "refused"
     assert result["reason"].startswith("view view1: the two pins lie one behind the other")
-
-
-@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
-@pytest.mark.parametrize("seed", [2, 20])
-def test_pins_one_behind_the_other_in_one_bar_are_given_its_edges_unnamed(phantom_plan, scene, seed):
-    """Operating room, view 1 (-47 deg) of seeds 2 and 20: the pins lie one behind the
-    other, staggered along one bar (seed 2's cut in two by a retractor blade across it),
-    with heads. No split made two pins of it, and both were "not found (no steel bar of a
-    pin's shape)". Both pins are now given the bar's edges, the same points, which lie on
-    the two pins' true outlines and cover each."""
-    room = OperatingRoom.everything(MESHES)
-    draw, frames = _room_frames(phantom_plan, scene, room, seed)
-    initial = simulate_case(phantom_plan, SimulationConfig(
-        seed=seed, view_angles_deg=view_angles(draw, (-30.0, 30.0)), init_rot_sd_rad=0.1, init_trans_sd_mm=20.0))
-    radiograph = frames[0].radiograph
-    shadows = _expected_pins(initial, 0, frames[0], phantom_plan)
-    found = extract_contours(radiograph.image, expected_pins=shadows.centres, expected_pin_width_px=shadows.width_px,
-                             expected_pin_length_px=shadows.length_px)
-    assert found.diagnostics["pins_overlap"] == "one bar"
-    np.testing.assert_array_equal(found.pin1, found.pin2)
-    truth = radiograph.silhouettes
-    union = cKDTree(np.vstack([truth["pin1"], truth["pin2"]]))
-    assert len(found.pin1) > 300
-    assert np.median(union.query(found.pin1)[0]) < 1.5
-    bar = cKDTree(found.pin1)
-    for label in ("pin1", "pin2"):
-        assert np.mean(bar.query(truth[label])[0] <= 2.0) > 0.3, label
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")

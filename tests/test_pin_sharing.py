@@ -13,7 +13,6 @@ from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.solver_config import SamplingConfig, SolverConfig
-from slamtka.solver.triangulation import PinSighting, triangulate_pin
 
 MESHES = SHARED_DATA / "knee-nuisance"
 SHARING = SolverConfig(sampling=SamplingConfig(share_pin_edges=True))
@@ -74,46 +73,6 @@ def test_contours_drawn_pin_by_pin_keep_their_names(phantom_plan, in_line_case):
     opaque = [replace(view, pins_opaque=True) for view in case.views]
     unasked = JointProblem(phantom_plan, opaque, SolverConfig())
     assert unasked.with_pin_edges_shared(poses) == (unasked, [])
-
-
-def test_pins_given_one_bar_unnamed_are_shared_out_from_the_first_solve(phantom_plan, in_line_case):
-    """Extraction that finds the pins one behind the other as one bar it cannot split
-    gives both pins all its edges. Such a view is shared out by the fit without being
-    asked (no first solve on a guessed split), and has no names to swap or to settle."""
-    case, poses = in_line_case
-    bar = np.vstack([case.views[0].contours[label] for label in PIN_LABELS])
-    view = replace(case.views[0].with_contours(pin1=bar, pin2=bar), pins_opaque=True)
-    assert view.pins_unnamed and not replace(case.views[0], pins_opaque=True).pins_unnamed
-    problem = JointProblem(phantom_plan, [view, case.views[1]], SolverConfig())
-    shared_problem, shared = problem.with_pin_edges_shared(poses)
-    assert shared == [view.view_id]
-    got = shared_problem.views[0]
-    assert got.pins_unnamed and got.pin_edges is not None and len(got.pin_edges) == len(bar)
-    assert 0.5 * len(bar) < sum(len(got.contours[label]) for label in PIN_LABELS) <= len(bar)
-    for view_first in (True, False):
-        views = [view, case.views[1]] if view_first else [case.views[1], view]
-        _, swapped, unclear = JointProblem(phantom_plan, views, SolverConfig()).relabelled(poses)
-        assert swapped == [] and unclear == []
-
-
-def test_a_bar_of_both_pins_gives_each_pin_its_line_not_its_ends(phantom_plan, in_line_case):
-    """Triangulated from its own contour in one view and the bar of both pins in another,
-    each pin's outer end is one of the bar's ends and its inner end lies on its ray from the
-    other view the pin's length away: the pins come out where they are (the bar's two ends
-    taken for each pin's, as of a pin seen alone, put both pins across the whole bar). Seed
-    3, view 1's pins in line as the bar."""
-    case, _ = in_line_case
-    views, T = case.views, case.truth_T_cam_tibia
-    bar = np.vstack([views[0].contours[label] for label in PIN_LABELS])
-    for k, label in enumerate(PIN_LABELS):
-        truth = case.truth_T_tibia_pin[k]
-        sightings = [PinSighting(views[0].camera, T[0], bar, line_only=True),
-                     PinSighting(views[1].camera, T[1], views[1].contours[label])]
-        got = triangulate_pin(sightings, truth, phantom_plan.pin_length())
-        assert got is not None
-        # Both ends taken from the bar: 4.0 deg and 15 mm off (pin 1), 4.0 deg (pin 2).
-        assert np.degrees(np.arccos(min(1.0, abs(float(got.R[:, 2] @ truth.R[:, 2]))))) < 2.0, label
-        assert np.linalg.norm(got.t - truth.t) < 5.0, label
 
 
 @pytest.mark.system

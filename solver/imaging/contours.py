@@ -679,83 +679,6 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     return in_line
 
 
-# Pins one behind the other whose one bar no split makes two pins of (a lateral view of the
-# block: operating-room seeds 2, 8, 20, 28): its pieces, where a retractor blade across it
-# cuts it, lie along one line, within this angle and this share of a pin's most width of it.
-_ONE_BAR_ANGLE_DEG = 3.0
-_ONE_BAR_OFFSET = 0.5
-_ONE_BAR_MAX_GAP = 0.4  # of the bar's length, that the gaps between its pieces may take
-
-
-def _one_bar(fitted: list[tuple[_Bar, np.ndarray]], masks: list[np.ndarray], edges: np.ndarray,
-             widths: _PinWidths, least_length: float) -> np.ndarray | None:
-    """The edge points of both pins seen one behind the other as one straight bar, or None.
-
-    Of the candidate shadows, largest first, the first that with the others along its line
-    (pieces of the bar that a retractor blade across it parts: steel over a blade is no
-    darker than the blade, and the gaps between the pieces are less than a share of the
-    whole) is no wider than one pin can be (pins one behind the other; a strip of a
-    retractor blade is often wider: operating-room seed 14, 46 px against a pin's 23), as
-    long as a pin can be, and with straight sides (:func:`_straight_sides`). Which of its
-    edges is which pin's is left to the fit (both pins are
-    given them all, ``JointProblem.with_pin_edges_shared``), and whether it holds both pins
-    too: one pin's bar, the other pin missed, is refused there (``gates.one_bar_unexplained``)."""
-    h, w = masks[0].shape
-    for bar, _ in fitted:
-        across = np.array([-bar.direction[1], bar.direction[0]])
-        group = [j for j, (other, _) in enumerate(fitted)
-                 if abs(float(other.direction @ bar.direction)) >= np.cos(np.radians(_ONE_BAR_ANGLE_DEG))
-                 and abs(float((other.centre - bar.centre) @ across)) <= _ONE_BAR_OFFSET * widths.most]
-        pixels = np.vstack([fitted[j][1] for j in group])
-        union = _fit_bar(pixels)
-        if not (widths.one_pin(_robust_width(union, pixels))
-                and 2.0 * union.half_length >= least_length):
-            continue
-        # The gaps along the line between the pieces.
-        ticks = np.arange(-union.half_length, union.half_length, 1.0)
-        held = np.zeros(len(ticks), bool)
-        for j in group:
-            s = (fitted[j][1] - union.centre) @ union.direction
-            held |= (ticks >= s.min()) & (ticks <= s.max())
-        if np.count_nonzero(~held) > _ONE_BAR_MAX_GAP * len(ticks):
-            continue
-        own = cv2.dilate(np.any([masks[j] for j in group], axis=0).astype(np.uint8),
-                         np.ones((9, 9), np.uint8)) > 0
-        px = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
-        mine = edges[own[px[:, 1], px[:, 0]]]
-        if len(mine) >= 2 * _MIN_PIN_EDGES and _straight_sides(mine, union):
-            return mine
-    return None
-
-
-# Median distance of a bar's side from its two lines, at most: 0.3-1.9 px on the bars of
-# pins with heads (operating-room seeds 2, 20), 2.3 px and more on a blob of text.
-_ONE_BAR_SIDE_PX = 2.0
-
-
-def _straight_sides(edges: np.ndarray, bar: _Bar) -> bool:
-    """Whether each long side of ``bar`` (its edge points beyond a width of its ends) is two
-    straight lines at most, one pin's edge and then the other's: the median distance of its
-    points from the two lines that fit it best (split where they fit best) is at most
-    ``_ONE_BAR_SIDE_PX``. A head on it holds few of its points; the outline of a blob of
-    burned-in text, taken for a bar, wanders (operating-room seed 25, view 1)."""
-    across = np.array([-bar.direction[1], bar.direction[0]])
-    s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ across
-    middle = np.abs(s) <= bar.half_length - 2.0 * bar.half_width
-    for side in (middle & (o > 0), middle & (o < 0)):
-        order = np.argsort(s[side])
-        ss, oo = s[side][order], o[side][order]
-        found = _line_step(ss, oo, _MIN_PIN_EDGES // 2)
-        if found is None:
-            return False
-        first = ss < found[0]
-        residuals = np.concatenate([oo[part] - np.polyval(np.polyfit(ss[part], oo[part], 1), ss[part])
-                                    for part in (first, ~first)])
-        if float(np.median(np.abs(residuals))) > _ONE_BAR_SIDE_PX:
-            return False
-    return True
-
-
 def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
     """The width of ``bar`` from the edge points along its sides (a head on its end, wider,
     holds few of them)."""
@@ -945,9 +868,6 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     else:
         split = _split_one(labels, shadows, edges, normals, widths, least_length, config)
         if isinstance(split, bool):
-            bar = _one_bar(fitted, [labels == t for t in shadows], edges, widths, least_length)
-            if bar is not None:
-                return [bar, bar], mask, {"pins_found": 2, "pins_overlap": "one bar"}
             empty = np.zeros((0, 2))
             return [empty, empty], mask, {"pins_found": 0, "pins_in_line": split}
         bars, overlap, edges = split
