@@ -253,6 +253,7 @@ _LENGTH_SHARE = 0.9  # of the other pin's length, where a pin's hidden end is in
 _HEAD_SLICE_PX = 3.0
 _HEAD_MOST_LENGTH = 3.0  # of the shaft's width
 _HEAD_STANDS_OUT = 0.15  # of the shaft's width
+_HEAD_STANDS_OUT_MOST = 0.6  # of the shaft's width: (6 - 3.2) / 2 / 3.2 = 0.44, blurred
 _HEAD_EDGE_SLICES = 2
 _HEAD_GAP_SLICES = 5
 _HEAD_FLANK_SHARE = 0.5  # of the margin: a head's flanks stand out less
@@ -288,7 +289,8 @@ def _without_heads(s: np.ndarray, o: np.ndarray, facing: np.ndarray, long: np.nd
         flanks = np.concatenate([excess, [0.0]])  # index -1 and len: beyond the union
         before = np.maximum(starts - _HEAD_EDGE_SLICES, -1)
         after = np.minimum(stops - 1 + _HEAD_EDGE_SLICES, len(excess))
-        heads = ((stops - starts <= most)
+        peaks = np.maximum.reduceat(flanks, np.column_stack([starts, stops]).ravel())[::2] if len(starts) else starts
+        heads = ((stops - starts <= most) & (peaks <= _HEAD_STANDS_OUT_MOST * shaft)
                  & (np.maximum(flanks[before], flanks[after]) < _HEAD_FLANK_SHARE * margin))
         head = np.zeros(len(profile), bool)
         for start, stop in zip(starts[heads], stops[heads]):
