@@ -246,10 +246,10 @@ _LENGTH_SHARE = 0.9  # of the other pin's length, where a pin's hidden end is in
 # A pin's head (6 mm across on a 3.2-4 mm shaft, 8 mm long, at the pin's driven end)
 # stands out of a side of the union by a quarter of the shaft's width or more, over at most
 # two and a half widths; where it lies inside the union, on the other pin's shaft, it hides
-# the step at the end of its pin (headed_pins seeds 3, 7, 25, 27: two pins split in the
-# wrong places, or not at all). A side's profile opened over twice a head's greatest
-# length keeps its steps (longer) and loses the heads (the ends mirrored: one at an end of
-# the union doubles).
+# the step at the end of its pin (headed_pins seeds 3, 7, 23: two pins split in the wrong
+# places, or not at all). A side's profile opened over twice a head's greatest length
+# keeps its steps (longer) and loses the heads; the ends are extended flat, not mirrored
+# (a side sloping at an end of the union mirrored into a peak).
 _HEAD_SLICE_PX = 3.0
 _HEAD_MOST_LENGTH = 3.0  # of the shaft's width
 _HEAD_STANDS_OUT = 0.15  # of the shaft's width
