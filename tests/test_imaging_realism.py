@@ -419,21 +419,6 @@ def test_headed_pins_pass_as_straight_bars(phantom_plan, scene):
     assert _labelled(frame.radiograph, found)
 
 
-@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
-@pytest.mark.parametrize("seed, view", [(3, 1), (27, 1)])
-def test_overlapping_headed_pins_are_split_where_the_pins_end(phantom_plan, scene, seed, view):
-    """Headed pins scene: two pins' shadows overlap into one, the head of one pin lying on
-    the other's shaft inside it. The head stood out of both sides there and the steps on
-    the sides were sought at its edges: seed 3 view 2 was split 45 and 65 px from the pins'
-    centres, seed 27 view 2 into no two pins at all. With the heads taken off the sides,
-    each bar lies on its pin."""
-    frame, found = _retractors_pins(phantom_plan, scene, seed, view, OperatingRoom.only("headed_pins", MESHES))
-    assert found.diagnostics["pins_overlap"] == "staggered"
-    for label, centre in zip(("pin1", "pin2"), found.diagnostics["pin_centres_px"]):
-        truth = frame.radiograph.silhouettes[label]
-        assert np.linalg.norm(np.asarray(centre) - 0.5 * (truth.min(axis=0) + truth.max(axis=0))) < 25.0
-
-
 @pytest.mark.parametrize("seed, view", [(1, 0), (10, 1), (11, 1)])
 def test_a_pin_whose_excess_dips_beside_the_air_is_found_whole(phantom_plan, scene, seed, view):
     """Scatter scene. Behind steel the detector sees the scatter, high beside the air by

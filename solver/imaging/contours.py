@@ -49,7 +49,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy import ndimage
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.edges import (
@@ -243,62 +242,6 @@ def _bar_from_edges(s: np.ndarray, o: np.ndarray, top: np.ndarray, span: tuple[f
 _LENGTH_SHARE = 0.9  # of the other pin's length, where a pin's hidden end is inferred from it
 
 
-# A pin's head (6 mm across on a 3.2-4 mm shaft, 8 mm long, at the pin's driven end)
-# stands out of a side of the union by a quarter of the shaft's width or more, over at most
-# two and a half widths; where it lies inside the union, on the other pin's shaft, it hides
-# the step at the end of its pin (headed_pins seeds 3, 7, 23: two pins split in the wrong
-# places, or not at all). A side's profile opened over twice a head's greatest length
-# keeps its steps (longer) and loses the heads; the ends are extended flat, not mirrored
-# (a side sloping at an end of the union mirrored into a peak).
-_HEAD_SLICE_PX = 3.0
-_HEAD_MOST_LENGTH = 3.0  # of the shaft's width
-_HEAD_STANDS_OUT = 0.15  # of the shaft's width
-_HEAD_STANDS_OUT_MOST = 0.6  # of the shaft's width: (6 - 3.2) / 2 / 3.2 = 0.44, blurred
-_HEAD_EDGE_SLICES = 2
-_HEAD_GAP_SLICES = 5
-_HEAD_FLANK_SHARE = 0.5  # of the margin: a head's flanks stand out less
-
-
-def _without_heads(s: np.ndarray, o: np.ndarray, facing: np.ndarray, long: np.ndarray) -> np.ndarray:
-    """``o`` (offsets across the union) with the heads' bulges taken off the long sides:
-    in slices where a side stands out of its opened profile over no more than a head's
-    length, the side's points are moved in by that much."""
-    slices = ((s - s.min()) / _HEAD_SLICE_PX).astype(int)
-    top, bottom = np.full(slices.max() + 1, np.nan), np.full(slices.max() + 1, np.nan)
-    up, down = long & (facing > 0), long & (facing < 0)
-    np.fmax.at(top, slices[up], o[up])
-    np.fmin.at(bottom, slices[down], o[down])
-    both = np.isfinite(top) & np.isfinite(bottom)
-    if np.count_nonzero(both) < 4:
-        return o
-    shaft = float(np.percentile((top - bottom)[both], 25))
-    most = int(_HEAD_MOST_LENGTH * shaft / _HEAD_SLICE_PX) + 1
-    margin = _HEAD_STANDS_OUT * shaft
-    flat = o.copy()
-    for sign, side, on in ((1.0, top, up), (-1.0, -bottom, down)):
-        seen = np.flatnonzero(np.isfinite(side))
-        # Closed first: a slice whose outer edge was not traced (a corner) is no gap in a side.
-        profile = ndimage.grey_closing(np.interp(np.arange(len(side)), seen, side[seen]),
-                                       size=_HEAD_GAP_SLICES, mode="nearest")
-        excess = profile - ndimage.grey_opening(profile, size=2 * most + 1, mode="nearest")
-        out = np.concatenate([[False], excess > margin, [False]])
-        starts, stops = np.flatnonzero(np.diff(out.astype(int)) == 1), np.flatnonzero(np.diff(out.astype(int)) == -1)
-        # A head's ends are sharp: its side is back on the opened profile within a few
-        # pixels of both (or the union ends there); a side sloping off the union's axis
-        # beyond a step is not.
-        flanks = np.concatenate([excess, [0.0]])  # index -1 and len: beyond the union
-        before = np.maximum(starts - _HEAD_EDGE_SLICES, -1)
-        after = np.minimum(stops - 1 + _HEAD_EDGE_SLICES, len(excess))
-        peaks = np.maximum.reduceat(flanks, np.column_stack([starts, stops]).ravel())[::2] if len(starts) else starts
-        heads = ((stops - starts <= most) & (peaks <= _HEAD_STANDS_OUT_MOST * shaft)
-                 & (np.maximum(flanks[before], flanks[after]) < _HEAD_FLANK_SHARE * margin))
-        head = np.zeros(len(profile), bool)
-        for start, stop in zip(starts[heads], stops[heads]):
-            head[start:stop] = True
-        flat[on] -= sign * np.where(head, excess, 0.0)[slices[on]]
-    return flat
-
-
 def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tuple[list[_Bar], str]:
     """Two bars in one shadow where the pins overlap, and how they overlap.
 
@@ -319,7 +262,6 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     n = np.array([-d[1], d[0]])
     s, o, facing = (edges - centre) @ d, (edges - centre) @ n, normals @ n
     long = np.abs(facing) > 0.9
-    o = _without_heads(s, o, facing, long)
     width = 2.0 * float(np.median(np.abs(o[long]))) if long.any() else 0.0
     ends = (s.min(), s.max())
     sides = long & (s > ends[0] + width) & (s < ends[1] - width)
