@@ -776,6 +776,8 @@ def _join_in_line(labels: np.ndarray, good: np.ndarray, excess: np.ndarray, typi
 
 
 def _bar_and_width(pixels: np.ndarray) -> tuple[_Bar, float]:
+    """A shadow's fitted bar and its robust width: what the join compares, kept per label so
+    that only a joined shadow is fitted again."""
     bar = _fit_bar(pixels)
     return bar, _robust_width(bar, pixels)
 
