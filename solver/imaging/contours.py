@@ -875,11 +875,11 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
         pair = _parallel_pair(fitted, widths, expected)
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
-    elif isinstance(split, bool):
-        empty = np.zeros((0, 2))
-        return [empty, empty], mask, {"pins_found": 0, "pins_in_line": split}
-    else:
+    elif isinstance(split, tuple):
         bars, overlap, edges = split
+    else:
+        empty = np.zeros((0, 2))
+        return [empty, empty], mask, {"pins_found": 0, "pins_in_line": bool(split)}
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
     if overlap == "apart":
