@@ -9,6 +9,11 @@ a plane through both X-ray sources their sightings meet about as well either way
 (:func:`naming_clear` is false): the case is then solved under both namings and
 :func:`settle_naming` keeps the one that fits clearly better, or the one plane both agree
 on, and otherwise refuses, naming the views. Measured in docs/solver.md ("Pin naming").
+
+The bone says it too: the pins are drilled into the tibia, and the wrong naming, whose
+pins are where the other pins' sightings cross, puts a pin deeper or shallower in the
+views' common plane, through the bone or in front of it (docs/realism.md, "Pin names from
+the bone").
 """
 
 from __future__ import annotations
@@ -19,10 +24,11 @@ import numpy as np
 
 from slamtka.solver.geometry import Pose
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
+from slamtka.solver.sdf import SignedDistanceField
 from slamtka.solver.triangulation import PinSighting, sighting_score
 
 __all__ = ["naming_score", "swap_pins", "swap_pays", "naming_clear", "cost_gap", "settle_naming",
-           "NAMING_MIN_COST_GAP", "NAMING_PLANE_TOLERANCE_DEG"]
+           "pins_out_of_bone_mm", "NAMING_MIN_COST_GAP", "NAMING_PLANE_TOLERANCE_DEG"]
 
 # A view's names are swapped when the swap at least halves how badly the pins' sightings
 # meet and gains more than a millimetre; they are clear when the other naming is worse by
@@ -43,6 +49,12 @@ NAMING_MIN_COST_GAP = 100.0
 # refusal of another naming that does not let the first stand (gates imports this module).
 _ANSWER_GATE_FAILED = "gate_failed"
 NAMING_PLANE_TOLERANCE_DEG = 0.5
+# A pin is in the bone when its deeper end lies within this of the plan's bone surface (its
+# segmentation and the fit's error along the pin: the right naming's pins are 1.7-14 mm
+# inside on the simulated cases), and clearly out of it beyond the second figure (the wrong
+# naming's farthest pin: 2.8-22 mm out).
+_PIN_IN_BONE_MM = 1.0
+_PIN_OUT_OF_BONE_MM = 4.0
 
 
 class _Solved(Protocol):
@@ -108,10 +120,56 @@ def cost_gap(first: _Solved, second: _Solved) -> float:
     return gap
 
 
+def pins_out_of_bone_mm(T_tibia_pin: list[Pose], pin_length_mm: float,
+                        bone: SignedDistanceField) -> float:
+    """How far the pin farthest from the bone has its deeper end outside it (mm; negative:
+    both pins reach into the bone). Either end may be the one drilled in: a pin's shadow
+    hardly says which end is its trocar tip."""
+    ends = np.array([T.apply(np.array([[0.0, 0.0, 0.0], [0.0, 0.0, pin_length_mm]]))
+                     for T in T_tibia_pin]).reshape(-1, 3)
+    depth = bone.query(ends, gradient=False)[0].reshape(len(T_tibia_pin), 2)
+    return float(np.max(np.min(depth, axis=1)))
+
+
+def _bone_prefers(out_of_bone_mm: tuple[float, float] | None) -> int | None:
+    """Which naming (0, 1) alone has both pins in the bone while the other has one clearly
+    out of it, or None."""
+    if out_of_bone_mm is None:
+        return None
+    for k in (0, 1):
+        if out_of_bone_mm[k] <= _PIN_IN_BONE_MM and out_of_bone_mm[1 - k] >= _PIN_OUT_OF_BONE_MM:
+            return k
+    return None
+
+
 def settle_naming(first: Solved, second: Solved, views: list[str],
-                  sightings_prefer_second: bool | None = None) -> tuple[Solved, str | None]:
+                  sightings_prefer_second: bool | None = None,
+                  out_of_bone_mm: tuple[float, float] | None = None) -> tuple[Solved, str | None]:
     """Of two solves under the two namings of ``views``, the one to report, and the refusal
-    when neither can be told right (None: the outcome returned stands as it is). A naming
+    when neither can be told right (None: the outcome returned stands as it is).
+
+    Where only one naming has both pins in the bone (``out_of_bone_mm``, each naming's
+    :func:`pins_out_of_bone_mm`), their place decides where the fit cannot tell: that
+    naming's outcome stands, measured or refused. Where the fit clearly chose the other,
+    the two disagree and nothing is measured. Otherwise the fit decides
+    (:func:`_settle_by_fit`)."""
+    chosen, refusal = _settle_by_fit(first, second, views, sightings_prefer_second)
+    in_bone = _bone_prefers(out_of_bone_mm)
+    if in_bone is None or out_of_bone_mm is None:
+        return chosen, refusal
+    placed = (first, second)[in_bone]
+    if refusal is not None:
+        return placed, None
+    if chosen is placed or chosen.status != "measured":
+        return chosen, None
+    return chosen, (f"the two pins cannot be told apart in view {', '.join(views)}: the naming "
+                    f"that fits puts a pin {out_of_bone_mm[1 - in_bone]:.0f} mm out of the "
+                    "bone, the other has both pins in it; take a view from another angle")
+
+
+def _settle_by_fit(first: Solved, second: Solved, views: list[str],
+                   sightings_prefer_second: bool | None = None) -> tuple[Solved, str | None]:
+    """:func:`settle_naming` by the fit and the pins' sightings alone. A naming
     that fits clearly better wins only if the pins' sightings (at the first solve's poses,
     ``sightings_prefer_second``) do not favour the other: on extracted contours the fit
     alone chose wrong names (two realism cases measured 17 and 25 deg off).

@@ -36,7 +36,13 @@ from slamtka.solver.geometry import Pose
 from slamtka.solver.measurement import ResectionPlane, fit_resection_plane
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.optimizer import IterationInfo, SolveReport, State, Term
-from slamtka.solver.pin_naming import naming_clear, naming_score, settle_naming, swap_pins
+from slamtka.solver.pin_naming import (
+    naming_clear,
+    naming_score,
+    pins_out_of_bone_mm,
+    settle_naming,
+    swap_pins,
+)
 from slamtka.solver.plan import Plan
 from slamtka.solver.problem import InitialGuess, JointProblem, named_poses
 from slamtka.solver.schedule import METHODS
@@ -162,7 +168,8 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
     # naming failed a pin gate from there.)
     other = _solve_from(JointProblem(plan, other_views, config, naming_fixed=True), initial,
                         named_poses(outcome.T_cam_tibia, initial.T_tibia_pin), callback, start)
-    chosen, refusal = settle_naming(outcome, other, unclear, sightings_prefer_second=other_mm < named_mm)
+    chosen, refusal = settle_naming(outcome, other, unclear, sightings_prefer_second=other_mm < named_mm,
+                                    out_of_bone_mm=_out_of_bone(plan, outcome, other))
     log.info("views %s: pin names open; swapped they %s (%s)", unclear,
              "fit better" if chosen is other else "fit no better", other.status)
     if chosen is other:  # its names, as against the views given
@@ -174,6 +181,16 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
         chosen.status, chosen.reason, chosen.why = "not_measured", refusal, Why.PINS_INDISTINCT
         chosen.names_undecided = True
     return chosen
+
+
+def _out_of_bone(plan: Plan, first: SolveOutcome, second: SolveOutcome) -> tuple[float, float] | None:
+    """How far each naming's solve leaves a pin out of the bone (pin_naming), or None when
+    either has no pins."""
+    if len(first.T_tibia_pin) != 2 or len(second.T_tibia_pin) != 2:
+        return None
+    sdf, length = plan.bone_model().sdf, plan.pin_length()
+    return (pins_out_of_bone_mm(first.T_tibia_pin, length, sdf),
+            pins_out_of_bone_mm(second.T_tibia_pin, length, sdf))
 
 
 def _solve_restarting(problem: JointProblem, initial: InitialGuess,

@@ -14,7 +14,7 @@ from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
 from slamtka.solver.observations import ViewObservation
 from slamtka.solver.optimizer import State
-from slamtka.solver.pin_naming import cost_gap, settle_naming, swap_pins
+from slamtka.solver.pin_naming import cost_gap, pins_out_of_bone_mm, settle_naming, swap_pins
 from slamtka.solver.problem import JointProblem, named_poses
 from slamtka.solver.ray_seating import seat_on_rays
 from slamtka.solver.slam import METHODS, InitialGuess, SolverConfig, solve_joint
@@ -762,6 +762,49 @@ def test_two_namings_that_fit_alike_but_disagree_are_refused():
     assert refusal == ("the two pins cannot be told apart in view view2: both namings fit (final cost "
                        "1000 against 1010) and give planes 7.0 deg apart in CTR and 1.0 deg in STR; "
                        "take a view from another angle")
+
+
+def test_the_naming_with_both_pins_in_the_bone_decides_where_the_fit_cannot():
+    """Idealised seed 28 at level 1: the right naming fits better by 508 but the pins'
+    sightings lean the other way, which put a pin 13 mm out of the bone; its pins are 4 mm
+    in. The bone decides, but never against a fit that clearly chose: then no answer."""
+    class Solved:
+        def __init__(self, cost: float, angles: tuple[float, float] | None):
+            self.status = "measured" if angles else "not_measured"
+            self.reason = "" if angles else "the pins are 3.4 deg from parallel"
+            self.why = None if angles else Why.GATE_FAILED
+            self.term_costs, self.residual_rms, self.angles_deg = {"E_rp": cost}, {"E_rp": 0.7}, angles
+
+    right, wrong = Solved(410.0, (0.3, 4.1)), Solved(918.0, (15.7, 4.4))
+    chosen, refusal = settle_naming(right, wrong, ["view2"], sightings_prefer_second=True)
+    assert refusal is not None and "sightings meet disagree" in refusal  # the fit alone: refused
+    assert settle_naming(right, wrong, ["view2"], True, out_of_bone_mm=(-4.0, 13.2)) == (right, None)
+    assert settle_naming(wrong, right, ["view2"], False, out_of_bone_mm=(13.2, -4.0)) == (right, None)
+    # Both namings in the bone, or neither clearly out of it: the fit alone decides.
+    for placed in ((-4.0, -3.0), (-4.0, 2.8), (2.0, 13.2)):
+        assert settle_naming(right, wrong, ["view2"], True, out_of_bone_mm=placed) == (chosen, refusal)
+    # The naming in the bone refused at a gate: its refusal stands, nothing is measured.
+    refused = Solved(1000.0, None)
+    assert settle_naming(wrong, refused, ["view2"], out_of_bone_mm=(13.2, -4.0)) == (refused, None)
+    # The fit chose clearly, and its pins are out of the bone: no answer.
+    chosen, refusal = settle_naming(wrong, Solved(1600.0, (1.0, 2.0)), ["view2"], False,
+                                    out_of_bone_mm=(13.2, -4.0))
+    assert chosen is wrong and refusal == (
+        "the two pins cannot be told apart in view view2: the naming that fits puts a pin 13 mm "
+        "out of the bone, the other has both pins in it; take a view from another angle")
+
+
+def test_pins_out_of_the_bone_are_measured_from_their_deeper_end(phantom_plan):
+    case = simulate_case(phantom_plan, SimulationConfig(seed=1))
+    sdf, length = phantom_plan.bone_model().sdf, phantom_plan.pin_length()
+    inside = pins_out_of_bone_mm(case.truth_T_tibia_pin, length, sdf)
+    assert inside < -3.0  # the simulator drills each tip at least 3 mm into the bone
+    flipped = [T @ Pose(rotation_about([1.0, 0.0, 0.0], np.pi), np.array([0.0, 0.0, length]))
+               for T in case.truth_T_tibia_pin]
+    assert pins_out_of_bone_mm(flipped, length, sdf) == pytest.approx(inside, abs=1e-9)
+    # One pin slid 60 mm out along its axis, away from its tip: its tip is then out.
+    slid = [case.truth_T_tibia_pin[0], case.truth_T_tibia_pin[1] @ Pose(np.eye(3), np.array([0.0, 0.0, 60.0]))]
+    assert pins_out_of_bone_mm(slid, length, sdf) > 10.0
 
 
 def test_namings_compare_their_costs_in_units_of_the_fits_own_dispersion():
