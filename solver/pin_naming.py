@@ -152,9 +152,15 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
     :func:`pins_out_of_bone_mm`), their place decides where the fit cannot tell: that
     naming's outcome stands, measured or refused. Where the fit clearly chose the other,
     the two disagree and nothing is measured. Otherwise the fit decides
-    (:func:`_settle_by_fit`)."""
-    chosen, refusal = _settle_by_fit(first, second, views, sightings_prefer_second)
+    (:func:`_settle_by_fit`).
+
+    A first naming not measured (its geometry degenerate: the angles too uncertain, as the
+    wrong naming's are where its pins cross the views' common plane) gives way only to a
+    measured other naming that the bone prefers."""
     in_bone = _bone_prefers(out_of_bone_mm)
+    if first.status != "measured":
+        return (second if in_bone == 1 and second.status == "measured" else first), None
+    chosen, refusal = _settle_by_fit(first, second, views, sightings_prefer_second)
     if in_bone is None or out_of_bone_mm is None:
         return chosen, refusal
     placed = (first, second)[in_bone]
@@ -192,8 +198,6 @@ def _settle_by_fit(first: Solved, second: Solved, views: list[str],
                            f"{cost_first:.0f}) but is refused ({second.reason}); take a view "
                            "from another angle")
         return first, None
-    if first.status != "measured":
-        return second, None
     better = first if gap >= 0 else second
     if abs(gap) >= NAMING_MIN_COST_GAP:
         if sightings_prefer_second is None or sightings_prefer_second == (better is second):

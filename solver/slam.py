@@ -148,11 +148,12 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
     plan, views, config = problem.plan, problem.views, problem.config
     outcome = (_solve_restarting(problem, initial, callback, start) if poses is None
                else _solve_from(problem, initial, poses, callback, start))
-    if outcome.status != "measured" or not outcome.unclear_naming:
+    if not outcome.unclear_naming or (outcome.status != "measured" and outcome.why != Why.DEGENERATE):
         return outcome
     # The pins' names were left open by their sightings at the bone's poses. At the poses
     # solved they may be clear (a wrong naming never was on the simulated cases, where the
-    # other naming met better); if not, the other naming decides by fit (solver.pin_naming).
+    # other naming met better); if not, the other naming decides by fit or by the bone
+    # (solver.pin_naming), also where this one's angles came out too uncertain to report.
     unclear = outcome.unclear_naming
     named = [swap_pins(v) if v.view_id in outcome.renamed else v for v in views]
     other_views = [swap_pins(v) if v.view_id in unclear else v for v in named]

@@ -786,6 +786,14 @@ def test_the_naming_with_both_pins_in_the_bone_decides_where_the_fit_cannot():
     # The naming in the bone refused at a gate: its refusal stands, nothing is measured.
     refused = Solved(1000.0, None)
     assert settle_naming(wrong, refused, ["view2"], out_of_bone_mm=(13.2, -4.0)) == (refused, None)
+    # The first naming's angles too uncertain (its geometry degenerate, as the wrong
+    # naming's of idealised seed 16): the other stands only where the bone prefers it.
+    degenerate = Solved(700.0, None)
+    degenerate.why = Why.DEGENERATE
+    assert settle_naming(degenerate, right, ["view2"], out_of_bone_mm=(22.5, -4.4)) == (right, None)
+    assert settle_naming(degenerate, right, ["view2"], out_of_bone_mm=(-4.0, -4.4)) == (degenerate, None)
+    assert settle_naming(degenerate, right, ["view2"]) == (degenerate, None)
+    assert settle_naming(degenerate, refused, ["view2"], out_of_bone_mm=(22.5, -4.4)) == (degenerate, None)
     # The fit chose clearly, and its pins are out of the bone: no answer.
     chosen, refusal = settle_naming(wrong, Solved(1600.0, (1.0, 2.0)), ["view2"], False,
                                     out_of_bone_mm=(13.2, -4.0))
