@@ -12,8 +12,8 @@ on, and otherwise refuses, naming the views. Measured in docs/solver.md ("Pin na
 
 The bone says it too: the pins are drilled into the tibia, and the wrong naming, whose
 pins are where the other pins' sightings cross, puts a pin deeper or shallower in the
-views' common plane, through the bone or in front of it (docs/realism.md, "Pin names from
-the bone").
+views' common plane, through the bone or in front of it (docs/solver.md, "Pin naming",
+step 4).
 """
 
 from __future__ import annotations
