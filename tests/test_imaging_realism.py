@@ -126,6 +126,16 @@ def test_ci_realism_cases_are_measured_right_or_refused_with_a_reason(phantom_pl
             assert result["status"] == "success"
 
 
+@pytest.mark.parametrize("seed, level", [(28, 1), (0, 3)])
+def test_names_from_the_bone_and_pins_seen_end_on_at_level_3_are_measured(seed, level):
+    """Idealised seed 28 at level 1: the fit and the pins' sightings disagree about the pins'
+    names; the naming with both pins in the bone is taken (it was refused). Seed 0 at level
+    3: the initial pose foresees 520 px shadows for pins that cast 156 px; two parallel bars
+    of a pin's width are taken (no pin was found)."""
+    row = realism_case(("phantom", "idealised", seed, (level,), str(SHARED_DATA)))
+    assert row["levels"][level]["status"] == "success", row["levels"][level]
+
+
 def test_bench_realism_writes_results_and_montage(tmp_path):
     out = tmp_path / "realism"
     assert main(["bench", "realism", "--cases", "1", "--levels", "1", "--models", "phantom",
