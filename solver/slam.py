@@ -192,18 +192,20 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
 _BONE_NAMING_MAX_OVERLAP = 0.75
 
 
-def _out_of_bone(*solved: tuple[JointProblem, SolveOutcome]) -> tuple[float, float] | None:
+def _out_of_bone(first: tuple[JointProblem, SolveOutcome], second: tuple[JointProblem, SolveOutcome]
+                 ) -> tuple[float, float] | None:
     """How far each of the two namings' solves leaves a pin out of the bone (pin_naming), or
     None where the bone cannot tell: a solve without pins, or a view with the pins one
     behind the other."""
+    solved = (first, second)
     overlaps = [pin_overlaps(problem, o.state) for problem, o in solved
                 if o.state is not None and len(o.T_tibia_pin) == 2]
     if len(overlaps) != 2 or any(v.share > _BONE_NAMING_MAX_OVERLAP for views in overlaps for v in views):
         return None
-    plan = solved[0][0].plan
+    plan = first[0].plan
     sdf, length = plan.bone_model().sdf, plan.pin_length()
-    first, second = (pins_out_of_bone_mm(o.T_tibia_pin, length, sdf) for _, o in solved)
-    return first, second
+    return (pins_out_of_bone_mm(first[1].T_tibia_pin, length, sdf),
+            pins_out_of_bone_mm(second[1].T_tibia_pin, length, sdf))
 
 
 def _solve_restarting(problem: JointProblem, initial: InitialGuess,
