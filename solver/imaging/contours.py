@@ -488,27 +488,35 @@ _PIN_PEAK_SHARE = 0.5  # of the strongest bar's median excess, that another bar 
 # With the plan's pin projected at the initial pose, a shadow's width is known to about
 # 10% (the pose's depth error): a pin's is within these shares of it, two pins side by
 # side at most the last. A retractor blade seen edge-on (2 mm) or a strip of a face-on
-# blade is as straight as a pin but rarely as wide.
-_EXPECTED_WIDTH_SHARES = (0.65, 1.5, 2.1)
+# blade is as straight as a pin but rarely as wide. A bar is taken for two pins seen one
+# behind the other only when wider than the fourth share: one pin's shadow, its partner
+# missed, must not be fitted as both (each pin's line would then lie in that bar's plane).
+_EXPECTED_WIDTH_SHARES = (0.65, 1.5, 2.1, 1.2)
 
 
 @dataclass(frozen=True)
 class _PinWidths:
-    """Widths (px) of a pin's shadow: one pin's least and most, and two side by side's most."""
+    """Widths (px) of a pin's shadow: one pin's least and most, two side by side's most, and
+    the least of two seen one behind the other."""
 
     least: float
     most: float
     union_most: float
 
+    least_behind: float  # two pins seen one behind the other: at least this wide
+
     @staticmethod
     def of(config: ContourConfig, expected_px: float | None) -> _PinWidths:
         if expected_px is None:
             lo, hi = config.pin_width_px
-            return _PinWidths(lo, hi, _PIN_UNION_WIDTH * hi)
+            return _PinWidths(lo, hi, _PIN_UNION_WIDTH * hi, hi)
         return _PinWidths(*(share * expected_px for share in _EXPECTED_WIDTH_SHARES))
 
     def one_pin(self, width: float) -> bool:
         return self.least <= width <= self.most
+
+    def two_behind(self, width: float) -> bool:
+        return self.least_behind < width <= self.union_most
 
 
 def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
@@ -658,12 +666,16 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     step on its sides, the other pin missed, is not cut into two half pins; patella seeds 0
     and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its bars, how they
     overlap and its edge points. All are tried: two pins in line across three blades are a
-    smaller shadow than the blades' strips (retractors seed 22, view 2). If none splits, whether one came out as a single bar
-    wider than a pin but no wider than two side by side: pins seen one behind the other,
-    their edges offset by a few px, that cannot be told apart (views seed 5 view 2,
-    operating-room seed 13 view 2)."""
+    smaller shadow than the blades' strips (retractors seed 22, view 2).
+
+    If none splits, a bar clearly wider than one pin but no wider than two side by side is
+    the pins seen one behind the other (a lateral view: views seeds 5 and 15, view 2). Its
+    edges cannot be told apart here, so both pins get all of them ("behind") for the fit to
+    share out (:meth:`JointProblem.with_pin_edges_shared`); where it is too short to be
+    the pins, False, True if it was of that width (for the refusal's words)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
+    behind: tuple[list[_Bar], str, np.ndarray] | None = None
     in_line = False
     for shadow in shadows:
         own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
@@ -672,11 +684,14 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
             continue
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
         width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
-        if width > widths.most:
-            in_line |= overlap in ("coincident", "unresolved") and width <= widths.union_most
-        elif min(2.0 * bar.half_length for bar in bars) >= least_length:
+        if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:
             return bars, overlap, edges[mine]
-    return in_line
+        whole = _fit_bar(edges[mine])
+        if behind is None and widths.two_behind(_edge_width(whole, edges[mine])):
+            in_line = True
+            if 2.0 * whole.half_length >= least_length:
+                behind = [whole, whole], "behind", edges[mine]
+    return behind if behind is not None else in_line
 
 
 def _edge_width(bar: _Bar, edges: np.ndarray) -> float:

@@ -1,0 +1,46 @@
+"""A bar wider than one pin is the two pins seen one behind the other; a pin's bar is not."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamtka.solver.imaging.contours import ContourConfig, _PinWidths, _split_one
+from slamtka.solver.imaging.edges import outline_with_normals
+
+_EXPECTED_WIDTH_PX = 20.0
+_LEAST_LENGTH_PX = 250.0  # 0.4 of the ~600 px the initial pose foresees: longer than half the bar
+
+
+def _split_bar(width_px: int, length_px: int) -> tuple | bool:
+    """What the split of one horizontal bar's shadow (no steps along its sides) gives."""
+    labels = np.zeros((200, 700), np.int32)
+    top = 100 - width_px // 2
+    labels[top:top + width_px, 50:50 + length_px] = 1
+    edges, normals = outline_with_normals(labels > 0, 10)
+    widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
+    return _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
+
+
+def test_a_bar_as_wide_as_two_pins_one_behind_the_other_is_both_pins():
+    """Surgeon's views seeds 5 and 15, view 2 (lateral): the pins one behind the other cast
+    one bar 1.3 pins wide, too even along its sides for a split into two pins. Both pins
+    get all of its edges, for the fit to share out."""
+    split = _split_bar(28, 450)
+    assert isinstance(split, tuple)
+    bars, overlap, edges = split
+    assert overlap == "behind"
+    assert bars[0] is bars[1]
+    assert abs(2.0 * bars[0].half_width - 28) < 3 and abs(bars[0].direction[1]) < 1e-6
+    assert len(edges) > 900  # the whole outline: 2 x (450 + 28) px
+
+
+def test_a_bar_one_pin_wide_is_not_taken_for_both_pins():
+    """The same bar a pin wide is one pin, its partner missed: fitted as both pins, each
+    pin's line would lie in that bar's plane and the resection plane would be wrong."""
+    assert _split_bar(20, 450) is False
+
+
+def test_a_bar_too_short_for_the_pins_says_they_lie_one_behind_the_other():
+    """A bar of two pins' width but shorter than a pin can be is not taken; that it was
+    seen is kept for the refusal's words."""
+    assert _split_bar(28, 200) is True
