@@ -71,6 +71,9 @@ class PinOverlap:
     # fit shared out: each pin's inner end hides in the other's shadow, and nothing of the
     # extraction's split says where, so the view cannot say how far apart the pins are.
     ends_hidden: bool = False
+    # In a view whose pin edges the fit shared out, the share of them off both fitted pins
+    # (JointProblem.unexplained_pin_edge_share).
+    unexplained_share: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -159,7 +162,7 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
     pins = [state.poses[key] for key in problem.pin_keys]
     radius = float(np.max(np.hypot(*np.asarray(plan.pin_mesh.vertices)[:, :2].T)))
     overlaps = []
-    for key, view in zip(problem.view_keys, problem.views):
+    for k, (key, view) in enumerate(zip(problem.view_keys, problem.views)):
         in_camera = [state.poses[key].apply(pin_axis_points(T, plan.pin_length()))
                      for T in pins]
         axes = [view.camera.project(p) for p in in_camera]
@@ -171,7 +174,8 @@ def pin_overlaps(problem: JointProblem, state: State) -> tuple[PinOverlap, ...]:
         ends_hidden = view.pin_edges is not None and share > 0 and all(
             bool(np.all(_segment_distances(axes[i], axes[j][0], axes[j][-1], whole_line=True) <= reach))
             for i, j in ((0, 1), (1, 0)))
-        overlaps.append(PinOverlap(view.view_id, share, ends_hidden))
+        overlaps.append(PinOverlap(view.view_id, share, ends_hidden,
+                                   problem.unexplained_pin_edge_share(k, state.poses)))
     return tuple(overlaps)
 
 

@@ -28,10 +28,14 @@ from slamtka.solver.terms import (
 from slamtka.solver.triangulation import PinSighting, triangulate_pin
 from slamtka.solver.variables import PoseKey, body_key, pin_key, view_key
 
-__all__ = ["EdgeGroup", "InitialGuess", "JointProblem", "named_poses", "thin_contour"]
+__all__ = ["EXPLAINED_PIN_EDGE_PX", "EdgeGroup", "InitialGuess", "JointProblem", "named_poses",
+           "thin_contour"]
 
 # Edge points' robust loss (in sigmas): a stray point pulls with a constant force.
 _EDGE_LOSS = RobustLoss("huber", 2.0)
+# A pin edge this close (px) to a fitted pin's outline is that pin's (a right fit's shared
+# bar lies within 2.4 px of its pins at the 95th percentile).
+EXPLAINED_PIN_EDGE_PX = 3.0
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,17 @@ class JointProblem:
         if not shared:
             return self, []
         return JointProblem(self.plan, views, self.config, self.naming_fixed, self.edges_sought), shared
+
+    def unexplained_pin_edge_share(self, k: int, poses: Mapping[PoseKey, Pose]) -> float:
+        """The share of view ``k``'s pooled pin edges (a view shared out) farther than
+        :data:`EXPLAINED_PIN_EDGE_PX` from both pins' outlines at ``poses``: a part of the
+        bar the fitted pins do not account for (0 for a view not shared out)."""
+        edges = self.views[k].pin_edges
+        outlines = [self._outline_px(k, label, poses) for label in PIN_LABELS]
+        if edges is None or not len(edges) or not any(len(o) for o in outlines):
+            return 0.0
+        distances = _nearest_distances(np.vstack(outlines), edges, 8.0)
+        return float(np.mean(distances > EXPLAINED_PIN_EDGE_PX))
 
     def pins_touch(self, poses: Mapping[PoseKey, Pose]) -> bool:
         """Whether the two pins' shadows touch at ``poses`` in some view of opaque pins

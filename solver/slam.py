@@ -308,9 +308,9 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         if overlapping is not None:
             why, misfit = Why.PINS_INDISTINCT, f"{overlapping} ({misfit})"
         return _refused(problem, why, misfit, state, report, rms, start, went_astray=True)
-    in_line = gates.pins_in_line(d)
-    if in_line is not None:
-        return _refused(problem, Why.PINS_INDISTINCT, in_line, state, report, rms, start)
+    indistinct = gates.pins_in_line(d) or gates.shared_bar_unexplained(d, limits)
+    if indistinct is not None:
+        return _refused(problem, Why.PINS_INDISTINCT, indistinct, state, report, rms, start)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)

@@ -87,6 +87,11 @@ class GateLimits:
     min_sought_edge_share: float = 0.5  # of the outline, where its edges were sought near it
     min_visible_outline_share: float = 0.4
     max_pin_overlap_share: float = 0.6
+    # In a view whose pins' one bar the fit shared out: the share of its edges that may lie
+    # off both fitted pins (EXPLAINED_PIN_EDGE_PX away; 0-1% where right, 7-11% with pin
+    # heads on the bar, which no pin model has; 29% where a pin slid along its axis and the
+    # views turned to make up for it).
+    max_unexplained_pin_edge_share: float = 0.2
     max_angle_sigma_deg: float = 2.0
 
 
