@@ -55,8 +55,10 @@ from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
 from slamtka.solver.imaging.calibration_file import Calibration
 from slamtka.solver.imaging.contours import (
+    ContourConfig,
     ContourError,
     ExtractedContours,
+    agreed_polarity,
     extract_contours,
     load_manual_contours,
 )
@@ -183,7 +185,8 @@ class Pipeline:
         self.calibration: Calibration | None = None  # of the run (or arriving view) being worked on
         self.output_root = Path(output_root)
         self.manual_contours_dir, self.institution = manual_contours_dir, institution
-        self._extracted: OrderedDict[str, tuple[ExtractedContours | None, str]] = OrderedDict()
+        # Extracted contours by (SOP instance UID, polarity asked for).
+        self._extracted: OrderedDict[tuple[str, str], tuple[ExtractedContours | None, str]] = OrderedDict()
         self._pins: tuple[Plan, tuple[Pose, Pose]] | None = None
 
     def warm_up(self) -> None:
@@ -250,28 +253,28 @@ class Pipeline:
         return decoded.frame
 
     def _extract(self, plan: Plan, view: View, frame: Frame, T_cam_tibia: Pose,
-                 pins: tuple[Pose, Pose]) -> tuple[ExtractedContours | None, str]:
+                 pins: tuple[Pose, Pose], polarity: str = "auto") -> tuple[ExtractedContours | None, str]:
         """Extracted contours of one view (raw pixels), or None and the reason; cached."""
-        uid = view.sop_instance_uid
-        if uid not in self._extracted:
+        key = (view.sop_instance_uid, polarity)
+        if key not in self._extracted:
             try:
                 calibration = self._calibrated()
                 shadows = plan.pin_shadows(calibration.camera, T_cam_tibia, pins)
-                found = extract_contours(frame.pixels,
+                found = extract_contours(frame.pixels, ContourConfig(polarity=polarity),
                                          expected_pins=calibration.distort_points(shadows.centres),
                                          expected_pin_width_px=shadows.width_px,
                                          expected_pin_length_px=shadows.length_px)
-                self._extracted[uid] = (found, "extracted")
+                self._extracted[key] = (found, "extracted")
             except ContourError as exc:
-                self._extracted[uid] = (None, f"{NO_CONTOURS} ({exc})")
+                self._extracted[key] = (None, f"{NO_CONTOURS} ({exc})")
             while len(self._extracted) > _PREPARED_VIEWS:
                 self._extracted.popitem(last=False)
-        return self._extracted[uid]
+        return self._extracted[key]
 
     def prepare(self, case: Case, view: View) -> None:
         """Extract a view's contours as soon as it arrives, so that a run triggered by a later
         view only waits for that view's. Quietly does nothing when there is no plan yet."""
-        if not view.usable or view.sop_instance_uid in self._extracted:
+        if not view.usable or (view.sop_instance_uid, "auto") in self._extracted:
             return
         try:
             plan = self.plans.find(case.patient_id, case.laterality)
@@ -299,7 +302,7 @@ class Pipeline:
             except ValueError:
                 return None, "no plan"
             self.prepare(case, view)
-            raw, source = self._extracted.get(view.sop_instance_uid, (None, _NO_CALIBRATION))
+            raw, source = self._extracted.get((view.sop_instance_uid, "auto"), (None, _NO_CALIBRATION))
         if raw is None:
             return None, source
         missing = [label for label, points in (("pin1", raw.pin1), ("pin2", raw.pin2))
@@ -437,12 +440,20 @@ class Pipeline:
             else:
                 item.contours, item.contour_source = self._extract(plan, item.view,
                                                                    item.frame, T, pins)
+        polarity = agreed_polarity([i.contours for i in usable if i.contour_source == "extracted"])
+        for item, T in zip(usable, start.T_cam_tibia):
+            contours = item.contours
+            if (polarity is not None and item.contour_source == "extracted" and contours is not None
+                    and contours.diagnostics["polarity"] != polarity):
+                # One C-arm stores a case's frames alike: read as the clear ones read.
+                item.contours, item.contour_source = self._extract(plan, item.view, item.frame, T,
+                                                                   pins, polarity)
             if item.contours is None:
                 item.left_out = item.contour_source
                 run.reasons.append(f"{item.view_id}: {item.contour_source}")
                 item.contour_source = None
             else:
-                run.recorder.contours(item.view_id, item.contours.as_dict(), item.contour_source)
+                run.recorder.contours(item.view_id, item.contours.as_dict(), _made(item.contour_source))
         kept = [(i, T) for i, T in zip(usable, start.T_cam_tibia) if i.used]
         cal = self._calibrated()
         run.observations = [i.contours.observation(i.view_id, cal.camera, cal.undistort_points,

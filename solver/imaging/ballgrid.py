@@ -43,7 +43,7 @@ class GridError(ValueError):
 def detect_balls(image: np.ndarray, ball_diameter_px: tuple[float, float] = (8.0, 60.0),
                  polarity: str = "auto", min_contrast: float = 0.25) -> np.ndarray:
     """Centres (N, 2) of ball shadows: compact blobs of a plausible size, not cut by the rim."""
-    centre, radius, outside, sign = field_of_view(np.asarray(image), polarity, "phantom")
+    centre, radius, outside, sign, _ = field_of_view(np.asarray(image), polarity, "phantom")
     A = attenuation(image, outside, sign)
     h, w = A.shape
     v, u = np.mgrid[0:h, 0:w]

@@ -151,7 +151,7 @@ def _find_grids(images: list[CalibrationImage], spec: PhantomSpec, options: Cali
     for im in images:
         entry = run.entries[im.name]
         try:
-            centre, radius, _, _ = field_of_view(im.pixels, "auto", "phantom")
+            centre, radius = field_of_view(im.pixels, "auto", "phantom")[:2]
             balls = detect_balls(im.pixels)
             entry["balls_found"] = len(balls)
             if len(balls) < 4:

@@ -4,7 +4,10 @@ Pipeline (all tuning in :class:`ContourConfig`):
 
 1. Field of view and polarity. The circle of an image intensifier is found from the
    no-signal level in the frame's corners (a robust circle fit to the field's boundary);
-   the polarity (attenuating objects dark or bright) follows from which side is brighter.
+   the polarity (attenuating objects dark or bright) is read from the frame's content
+   (:func:`~slamtka.solver.imaging.field.field_of_view`). The frames of one case come from
+   one C-arm: :func:`agreed_polarity` says when one read from weak cues must be read again
+   as the clear ones read.
 2. Attenuation. ``A = -log(signal)``, so that bodies add: soft tissue is a smooth surface,
    bone a step on top of it, metal a much larger one.
 3. Pins: ``A`` minus a 100-px median background, and on and beside broad metal minus
@@ -42,7 +45,7 @@ Manual contours (the in-vivo protocol had the surgeon draw them) are read by
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -72,7 +75,7 @@ from slamtka.solver.imaging.response import linearised_attenuation
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.observations import ViewObservation, VisibleRegion
 
-__all__ = ["VISIBLE_CELL_PX", "ContourConfig", "ExtractedContours", "extract_contours",
+__all__ = ["VISIBLE_CELL_PX", "ContourConfig", "ExtractedContours", "agreed_polarity", "extract_contours",
            "load_manual_contours", "ContourError"]
 
 VISIBLE_CELL_PX = 4  # the bone's visible region is kept in cells of this many pixels
@@ -1187,6 +1190,23 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
         raise ContourError(f"{UNFORESEEN_PREFIX} ({type(exc).__name__}: {exc})") from exc
 
 
+def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:
+    """The polarity ("dark", "bright") to extract again with the frames of one case that
+    read another, or None when they agree or nothing clear says otherwise.
+
+    A case's frames come from one C-arm that stores them alike. Where the frames whose own
+    content says their polarity clearly (``polarity_decisive``) agree, a frame read
+    otherwise from weaker cues is read wrongly: shutters seeds 14 and 23 had view 1's taken
+    inverted, a collimator blade's bright edge passing for steel, and their bone stage went
+    astray (view 2's periphery says "dark" four to ten times over the decisive level)."""
+    read = [f.diagnostics for f in extracted if f is not None]
+    clear = {d.get("polarity") for d in read if d.get("polarity_decisive")}
+    if len(clear) != 1:
+        return None
+    polarity = clear.pop()
+    return polarity if any(d.get("polarity") != polarity for d in read) else None
+
+
 def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None,
              expected_pin_width_px: float | None, expected_pin_length_px: float | None
              ) -> ExtractedContours:
@@ -1201,7 +1221,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         image = (image - image.min()) * (65535.0 / np.ptp(image))
     h, w = image.shape
     image, overlay = remove_overlays(image)
-    centre, radius, outside, sign = field_of_view(image, config.polarity)
+    centre, radius, outside, sign, sign_decisive = field_of_view(image, config.polarity)
     u, v = np.arange(w)[None, :], np.arange(h)[:, None]
     r = np.hypot(u - centre[0], v - centre[1])
     valid = r < (radius if radius is not None else np.inf) - 2.0
@@ -1261,6 +1281,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     diagnostics = {
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright",
+        "polarity_decisive": sign_decisive,
         "response": "linear" if linearised is None else "linearised from the noise", **pin_info, **bone_info,
         "opaque_area_px": int(broad.sum()), "shutters": len(shutter_lines),
         "smoothing_px": smoothing, "missing": missing,

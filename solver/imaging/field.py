@@ -11,6 +11,8 @@ a knee frame is centred on the leg, so its periphery is less attenuating than it
 (:func:`_periphery_asymmetry`); where that is not clear, steel pins, the narrow bodies that
 attenuate most, stand out on the attenuating side (:func:`polarity_sign`). Only when both are
 ambiguous does the intensifier's no-signal level decide (the side it lies on is "no signal").
+:class:`FieldOfView` says whether the polarity came from clear evidence, so that a case's
+frames can be read alike (``contours.agreed_polarity``).
 
 ``-log(signal)`` turns the frame into attenuation, in which bodies add. Collimator blades
 that scatter and processing leave short of opaque are found from their straight edges
@@ -19,11 +21,13 @@ across the field (:func:`collimator_shutters`).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
-__all__ = ["FieldError", "field_of_view", "attenuation", "collimator_shutters", "components", "fill_holes",
-           "polarity_sign", "remove_overlays"]
+__all__ = ["FieldError", "FieldOfView", "field_of_view", "attenuation", "collimator_shutters", "components",
+           "fill_holes", "polarity_sign", "remove_overlays"]
 
 
 class FieldError(ValueError):
@@ -195,9 +199,21 @@ def _periphery_asymmetry(image: np.ndarray, lit: np.ndarray, centre: np.ndarray,
     return float(((q75 - level) - (level - q25)) / (hi - lo))
 
 
-def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
-                  ) -> tuple[np.ndarray, float | None, float, int]:
-    """Centre, radius (None: the whole frame is imaged), no-signal level and sign of signal.
+class FieldOfView(NamedTuple):
+    """Where a frame is lit, and which way its grey levels run."""
+
+    centre: np.ndarray
+    radius: float | None  # None: the whole frame is imaged
+    level: float  # the grey level of no signal
+    sign: int  # +1: attenuating bodies dark, -1: bright
+    # Whether the sign was configured or read from clear evidence (a knee frame's periphery
+    # beyond _RIM_DECISIVE, a phantom's no-signal level), not from the weaker cues that a
+    # collimator blade's edge can mislead (shutters seeds 14 and 23, view 1).
+    sign_decisive: bool
+
+
+def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee") -> FieldOfView:
+    """Centre, radius, no-signal level and sign of signal of a frame.
 
     ``scene`` "knee" reads an automatic polarity from the content of a knee frame first;
     "phantom" (a calibration plate filling the field, no leg) from the intensifier's
@@ -222,12 +238,13 @@ def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
         centre, radius, outside = np.array([(w - 1) / 2.0, (h - 1) / 2.0]), None, None
         lit = np.ones_like(data, bool)
     if polarity in ("dark", "bright"):
-        sign = 1 if polarity == "dark" else -1
+        sign, decisive = (1 if polarity == "dark" else -1), True
     else:
         guess: int | None = None
         if scene == "phantom" and outside is not None:
             guess = 1 if float(np.median(data[lit])) >= outside else -1
         rim = _periphery_asymmetry(data, lit, centre, radius) if guess is None else 0.0
+        decisive = guess is not None or abs(rim) >= _RIM_DECISIVE
         if guess is None:
             guess = int(np.sign(rim)) if abs(rim) >= _RIM_DECISIVE else polarity_sign(data, lit)
         if guess is None and abs(rim) >= _RIM_WEAK:
@@ -245,7 +262,7 @@ def field_of_view(image: np.ndarray, polarity: str, scene: str = "knee"
     else:
         # No usable no-signal level: just beyond the most attenuating pixel of the field.
         level = level_lo - 1.0 if sign > 0 else level_hi + 1.0
-    return np.asarray(centre, float), radius, float(level), sign
+    return FieldOfView(np.asarray(centre, float), radius, float(level), sign, decisive)
 
 
 _STROKE_MIN_PX = 12
