@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pydicom
 import pytest
 
+import slamtka.service.pipeline as pipeline
 from slamtka.service.cli import main
 
 
@@ -61,3 +63,26 @@ def test_measure_refuses_bad_input_in_one_line_naming_the_file(case, tmp_path, c
         assert main(argv) == 2, message
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and message in err, err
+
+
+def test_a_frame_misread_inverted_is_extracted_again_as_its_partner_reads(case, tmp_path, monkeypatch):
+    """The run reads a case's frames with one polarity: view 1 made to read inverted from
+    weak cues (as a collimator blade's edge did in shutters seeds 14 and 23) is extracted
+    again as view 2's clear reading says, and the case measures."""
+    real = pipeline.extract_contours
+    asked: list[str] = []
+    view1 = pydicom.dcmread(case / "frames" / "view1.dcm").pixel_array
+
+    def misreading(pixels, config, **kwargs):
+        asked.append(config.polarity)
+        if config.polarity == "auto" and pixels.shape == view1.shape and (pixels == view1).all():
+            found = real(pixels, replace(config, polarity="bright"), **kwargs)
+            found.diagnostics["polarity_decisive"] = False
+            return found
+        return real(pixels, config, **kwargs)
+
+    monkeypatch.setattr(pipeline, "extract_contours", misreading)
+    assert main(_args(case, tmp_path / "out")) == 0
+    (result,) = (tmp_path / "out").glob("case-*/*/result.json")
+    assert json.loads(result.read_text())["status"] == "measured"
+    assert asked == ["auto", "auto", "dark"]
