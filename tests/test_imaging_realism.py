@@ -158,6 +158,17 @@ def test_a_solve_the_encoders_contradict_is_restarted_from_a_view_carried_by_the
     assert row["levels"][1]["status"] == "success", row["levels"][1]
 
 
+@pytest.mark.skipif(not (SHARED_DATA / "knee-smith2019" / "tibia-right.stl").is_file(),
+                    reason="shared meshes absent")
+def test_pins_in_line_between_blades_are_not_taken_for_pins_one_behind_the_other():
+    """The real tibia's operating-room seed 26 at level 3: between two retractor blades,
+    view 2 shows a piece of two pins in line, one overlapping the other's end, wider only
+    where they overlap. Given to both pins as one bar, the case was measured 5.0 deg off in
+    CTR; not taken for them, it is refused."""
+    row = realism_case(("real", "operating-room", 26, (3,), str(SHARED_DATA)))
+    assert row["levels"][3]["status"] == "refused", row["levels"][3]
+
+
 def test_bench_realism_writes_results_and_montage(tmp_path):
     out = tmp_path / "realism"
     assert main(["bench", "realism", "--cases", "1", "--levels", "1", "--models", "phantom",
