@@ -678,8 +678,8 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     (:meth:`JointProblem.with_pin_edges_shared`). Pins in line, one overlapping the other's
     end, are wider only where they overlap (the real tibia's operating-room seed 26 at
     level 3, between two blades: 44, 34 and 16 px; taken for both pins it was measured 5 deg
-    off). Where it is too short to be the pins, False, True if it was of that width (for the
-    refusal's words)."""
+    off). Where none is taken, False, or True if a bar was of that width on average (for the
+    refusal's words: the pins overlap there)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
     behind: tuple[list[_Bar], str, np.ndarray] | None = None
@@ -694,11 +694,11 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:
             return bars, overlap, edges[mine]
         whole = _fit_bar(edges[mine])
-        thirds = _widths_along(whole, edges[mine])
-        if (behind is None and all(widths.two_behind(w) for w in thirds)
-                and thirds.max() <= _BEHIND_EVENNESS * thirds.min()):
+        if behind is None and widths.two_behind(_edge_width(whole, edges[mine])):
             in_line = True
-            if 2.0 * whole.half_length >= least_length:
+            thirds = _widths_along(whole, edges[mine])
+            if (2.0 * whole.half_length >= least_length and all(widths.two_behind(w) for w in thirds)
+                    and thirds.max() <= _BEHIND_EVENNESS * thirds.min()):
                 behind = [whole, whole], "behind", edges[mine]
     return behind if behind is not None else in_line
 
