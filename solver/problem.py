@@ -209,8 +209,10 @@ class JointProblem:
         :data:`EXPLAINED_PIN_EDGE_PX` from both pins' outlines at ``poses``: a part of the
         bar the fitted pins do not account for (0 for a view not shared out)."""
         edges = self.views[k].pin_edges
+        if edges is None or not len(edges):
+            return 0.0  # not shared out: no outline is traced for it
         outlines = [self._outline_px(k, label, poses) for label in PIN_LABELS]
-        if edges is None or not len(edges) or not any(len(o) for o in outlines):
+        if not any(len(o) for o in outlines):
             return 0.0
         distances = _nearest_distances(np.vstack(outlines), edges, 8.0)
         return float(np.mean(distances > EXPLAINED_PIN_EDGE_PX))

@@ -234,7 +234,7 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
             best = outcome
     if outcome.status != "measured" and outcome.why is Why.ENCODERS_DISAGREE:
         outcome = _carried_by_the_encoders(problem, initial, outcome, callback, start)
-        iterations += outcome.iterations
+        iterations += outcome.iterations  # of every restart it ran
     chosen = outcome if outcome.status == "measured" else best
     chosen.iterations = iterations
     return chosen
@@ -244,18 +244,21 @@ def _carried_by_the_encoders(problem: JointProblem, initial: InitialGuess, astra
                              callback: Callable[[str, IterationInfo], None] | None,
                              start: float) -> SolveOutcome:
     """Solves restarted from each view of a solve the encoders contradict, the other views
-    carried from it by the encoders' C-arm motion; the first that measures, else the last.
+    carried from it by the encoders' C-arm motion; the first that measures, else the last,
+    with the iterations of all of them.
 
     In such a local minimum one view has usually found the bone and the other not
     (retractors seed 3: view 1 2.8 deg off, view 2 0.65 deg), and the encoders' motion,
     known to a few tenths of a degree, puts the other view near its right pose."""
-    outcome = astray
+    outcome, iterations = astray, 0
     for k, found in enumerate(astray.T_cam_tibia):
         carried = [T @ initial.T_cam_tibia[k].inverse() @ found for T in initial.T_cam_tibia]
         outcome = _solve_from(problem, initial, named_poses(carried, initial.T_tibia_pin), callback, start)
         outcome.initialisation = "carried by the encoders"
+        iterations += outcome.iterations
         if outcome.status == "measured":
             break
+    outcome.iterations = iterations
     return outcome
 
 

@@ -505,7 +505,6 @@ class _PinWidths:
     least: float
     most: float
     union_most: float
-
     least_behind: float  # two pins seen one behind the other: at least this wide
 
     @staticmethod
@@ -711,9 +710,7 @@ _BEHIND_EVENNESS = 1.2
 def _widths_along(bar: _Bar, edges: np.ndarray) -> np.ndarray:
     """The width of ``bar`` from its edge points in each third of its sides (its ends left
     out), NaN where a third has none."""
-    along = (edges - bar.centre) @ bar.direction
-    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
-    on_sides = across <= 2.0 * bar.half_width
+    along, across, on_sides = _on_sides(bar, edges)
     bounds = np.array([-0.8, -0.27, 0.27, 0.8]) * bar.half_length
     return np.array([2.0 * float(np.median(across[m])) if m.any() else np.nan
                      for m in (on_sides & (along >= a) & (along < b) for a, b in zip(bounds[:-1], bounds[1:]))])
@@ -722,10 +719,17 @@ def _widths_along(bar: _Bar, edges: np.ndarray) -> np.ndarray:
 def _edge_width(bar: _Bar, edges: np.ndarray) -> float:
     """The width of ``bar`` from the edge points along its sides (a head on its end, wider,
     holds few of them)."""
-    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
-    along = np.abs((edges - bar.centre) @ bar.direction)
-    sides = across[(along <= bar.half_length) & (across <= 2.0 * bar.half_width)]
+    along, across, on_sides = _on_sides(bar, edges)
+    sides = across[on_sides & (np.abs(along) <= bar.half_length)]
     return 2.0 * float(np.median(sides)) if len(sides) else 2.0 * bar.half_width
+
+
+def _on_sides(bar: _Bar, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each edge point's signed offset along ``bar`` and distance across it, and whether it
+    lies on a side (within twice the bar's half width of its axis)."""
+    along = (edges - bar.centre) @ bar.direction
+    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    return along, across, across <= 2.0 * bar.half_width
 
 
 def _medians(values: np.ndarray, labels: np.ndarray, chosen: np.ndarray) -> np.ndarray:
