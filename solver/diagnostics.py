@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
-from slamtka.solver.measurement import pin_axis_points
+from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -87,7 +87,7 @@ class SolveDiagnostics:
     max_ray_miss_mm: float  # what made a pixel stray
     pin_grazes: tuple[PinGraze, ...]  # methods with edge points
     outlines: tuple[OutlineFit, ...]  # every model in every view
-    pin_divergence_deg: float  # angle between the pins' axes
+    pin_divergence: PinDivergence  # of the pins' axes from parallel, split by their plane
     view_separation_deg: float  # of the solved views
     pin_overlaps: tuple[PinOverlap, ...] = ()  # every view, at the solved poses
     # Where the bone contours were sought near the model's outline: per view, the share of
@@ -191,8 +191,7 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         PinGraze(problem.views[t.view.position].view_id, t.body.label, t.graze_offset_rms_mm(state))
         for t in terms if isinstance(t, BackProjectionTerm) and t.body in problem.pin_keys
         and t.view is not None)
-    axes = [state.poses[key].R[:, 2] for key in problem.pin_keys]
-    divergence = float(np.degrees(np.arccos(np.clip(abs(axes[0] @ axes[1]), -1.0, 1.0))))
+    divergence = pin_divergence([state.poses[key] for key in problem.pin_keys], problem.plan.pin_length())
     return SolveDiagnostics(
         rms, n_residuals,
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,

@@ -33,7 +33,7 @@ from slamtka.solver.alignment import align_view_in_image
 from slamtka.solver.diagnostics import diagnose, input_diagnostics, pin_overlaps
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose
-from slamtka.solver.measurement import ResectionPlane, fit_resection_plane
+from slamtka.solver.measurement import ResectionPlane, fit_resection_plane, with_in_plane_sd
 from slamtka.solver.observations import PIN_LABELS, ViewObservation
 from slamtka.solver.optimizer import IterationInfo, SolveReport, State, Term
 from slamtka.solver.pin_naming import (
@@ -49,7 +49,7 @@ from slamtka.solver.schedule import METHODS
 from slamtka.solver.setup_search import search_setup
 from slamtka.solver.solver_config import SolverConfig
 from slamtka.solver.stages import StageRunner
-from slamtka.solver.uncertainty import angle_uncertainty
+from slamtka.solver.uncertainty import angle_uncertainty, pin_covariance
 from slamtka.solver.variables import PoseKey
 
 __all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
@@ -322,6 +322,12 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     hidden = gates.hidden_outline(d, limits)
     if hidden is not None:
         return _refused(problem, Why.BONE_OUTLINE_INSUFFICIENT, hidden, state, report, rms, start)
+    pins = [state.poses[key] for key in problem.pin_keys]
+    pin_cov: np.ndarray | None = None
+    if d.pin_divergence.total > limits.max_pin_divergence_deg >= d.pin_divergence.out_of_plane:
+        # Too far from parallel within the pins' plane: does the fit resolve that turn?
+        pin_cov = pin_covariance(problem, state, terms, fine.cost, d.n_residuals)
+        d = replace(d, pin_divergence=with_in_plane_sd(d.pin_divergence, pins, pin_cov, plan.pin_length()))
     for gate, why in ((gates.contour_misfit, Why.GATE_FAILED), (gates.sought_edges_missing, Why.GATE_FAILED),
                       (gates.pin_divergence, Why.GATE_FAILED), (gates.odometry_misfit, Why.ENCODERS_DISAGREE)):
         misfit = gate(d, limits)
@@ -341,9 +347,10 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)
 
     final_views = [state.poses[key] for key in problem.view_keys]
-    pins = [state.poses[key] for key in problem.pin_keys]
     plane = fit_resection_plane(pins, plan.pin_length(), plan.landmarks)
-    angle_cov = angle_uncertainty(problem, state, terms, fine.cost, d.n_residuals)
+    if pin_cov is None:
+        pin_cov = pin_covariance(problem, state, terms, fine.cost, d.n_residuals)
+    angle_cov = angle_uncertainty(problem, state, pin_cov)
     sigma_deg = np.degrees(np.sqrt(np.diag(angle_cov)))
     outcome = SolveOutcome("measured", "", state, final_views, pins, plane, angle_cov, rms,
                            fine.term_costs, report.iterations, time.perf_counter() - start,

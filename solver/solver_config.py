@@ -82,6 +82,9 @@ class GateLimits:
     max_pin_outline_p90_px: float = 60.0
     max_pin_graze_offset_mm: float = 0.8
     max_pin_divergence_deg: float = 3.0
+    # Beyond it, a turn within the pins' plane still passes up to this many of its standard
+    # deviations: the views do not resolve it (gates.pin_divergence).
+    max_unresolved_turn_sds: float = 4.0
     max_odometry_rms_sigma: float = 7.5
     max_coarse_bone_median_px: float = 4.0
     min_sought_edge_share: float = 0.5  # of the outline, where its edges were sought near it

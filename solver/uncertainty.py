@@ -11,15 +11,15 @@ from slamtka.solver.problem import JointProblem
 from slamtka.solver.terms import BackProjectionTerm
 from slamtka.solver.variables import BONE
 
-__all__ = ["angle_uncertainty"]
+__all__ = ["angle_uncertainty", "pin_covariance"]
 
 
-def angle_uncertainty(problem: JointProblem, state: State, terms: list[Term], cost: float,
-                      n_residuals: int) -> np.ndarray:
-    """Covariance (2, 2) rad^2 of (CTR, STR) from the final energy ``terms`` at ``state``,
-    scaled up by the fit's variance factor (``cost`` over ``n_residuals``' degrees of
-    freedom) where the residuals are larger than their sigmas say."""
-    plan, fixed = problem.plan, problem.fixed_dofs()
+def pin_covariance(problem: JointProblem, state: State, terms: list[Term], cost: float,
+                   n_residuals: int) -> np.ndarray:
+    """Covariance (12, 12) of the two pins' increments from the final energy ``terms`` at
+    ``state``, scaled up by the fit's variance factor (``cost`` over ``n_residuals``'
+    degrees of freedom) where the residuals are larger than their sigmas say."""
+    fixed = problem.fixed_dofs()
     # E_mp charges the same contour pixels again that the edge points (E_rp, E_bp) explain:
     # where those exist, its information would be counted twice, and the spread understated.
     with_edges = any(term.name == "E_rp" for term in terms)
@@ -28,11 +28,15 @@ def angle_uncertainty(problem: JointProblem, state: State, terms: list[Term], co
                                             _segmentation_error(problem, state, cov_terms))
     dof = n_residuals - len(state.points) * 3 - int(np.count_nonzero(~state.ordering.mask(fixed)))
     variance_factor = max(1.0, cost / max(dof, 1))
-    pins = problem.pin_keys
-    return angle_covariance(
-        [state.poses[key] for key in pins],
-        state.ordering.marginal(cov * variance_factor + cov_segmentation, pins),
-        plan.pin_length(), plan.landmarks)
+    return state.ordering.marginal(cov * variance_factor + cov_segmentation, problem.pin_keys)
+
+
+def angle_uncertainty(problem: JointProblem, state: State, pin_cov: np.ndarray) -> np.ndarray:
+    """Covariance (2, 2) rad^2 of (CTR, STR) from the pins' covariance ``pin_cov``
+    (:func:`pin_covariance`)."""
+    plan = problem.plan
+    return angle_covariance([state.poses[key] for key in problem.pin_keys], pin_cov,
+                            plan.pin_length(), plan.landmarks)
 
 
 def _segmentation_error(problem: JointProblem, state: State, terms: list[Term]

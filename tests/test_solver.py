@@ -489,21 +489,38 @@ def test_edge_points_are_seated_again_until_the_poses_stop_turning(phantom_plan)
 
 
 def test_pins_that_are_not_parallel_are_named(phantom_plan):
-    """The block holds its pins parallel: the true pins pass, a pin turned 5 deg about its
-    tip (whatever the contours say) is refused by name."""
+    """The block holds its pins parallel: the true pins pass, a pin turned 5 deg across the
+    pins' plane (whatever the contours say) is refused by name. Turned 5 deg within the
+    plane it is refused where the views resolve that turn, and passes where they cannot
+    (its standard deviation over a quarter of it)."""
+    from dataclasses import replace
+
+    from slamtka.solver.diagnostics import diagnose
     from slamtka.solver.geometry import rotation_about
+    from slamtka.solver.measurement import fit_resection_plane
 
     case = simulate_case(phantom_plan, SimulationConfig(seed=8))
     problem = JointProblem(phantom_plan, case.views, SolverConfig())
     truth = named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin)
     assert _pin_divergence(problem, State(truth, np.zeros((0, 3)))) is None
-    # Turned about its own axis, a pin is the same pin.
     pin2 = truth[pin_key("pin2")]
-    spun = Pose(pin2.R @ rotation_about([0.0, 0.0, 1.0], np.radians(40.0)), pin2.t)
-    assert _pin_divergence(problem, State(truth | {pin_key("pin2"): spun}, np.zeros((0, 3)))) is None
-    turned = Pose(pin2.R @ rotation_about([1.0, 0.0, 0.0], np.radians(5.0)), pin2.t)
-    reason = _pin_divergence(problem, State(truth | {pin_key("pin2"): turned}, np.zeros((0, 3))))
-    assert reason is not None and "5.0 deg from parallel" in reason
+
+    def turned(axis: np.ndarray, degrees: float) -> State:
+        pin = Pose(rotation_about(axis, np.radians(degrees)) @ pin2.R, pin2.t)
+        return State(truth | {pin_key("pin2"): pin}, np.zeros((0, 3)))
+
+    # Turned about its own axis, a pin is the same pin.
+    assert _pin_divergence(problem, turned(pin2.R[:, 2], 40.0)) is None
+    normal = fit_resection_plane(case.truth_T_tibia_pin, phantom_plan.pin_length(), phantom_plan.landmarks).normal
+    across = _pin_divergence(problem, turned(np.cross(normal, pin2.R[:, 2]), 5.0))
+    assert across is not None and "5.0 deg from parallel (5.0 deg across their plane > 3 deg)" in across
+    within = diagnose(problem, turned(normal, 5.0), [])
+    assert within.pin_divergence.in_plane == pytest.approx(5.0, abs=0.01)
+    limits = problem.config.gates
+    resolved = replace(within, pin_divergence=within.pin_divergence._replace(in_plane_sd=0.5))
+    assert "5.0 deg from parallel (> 3 deg)" in (gates.pin_divergence(resolved, limits) or "")
+    unresolved = replace(within, pin_divergence=within.pin_divergence._replace(in_plane_sd=1.5))
+    assert gates.pin_divergence(unresolved, limits) is None
 
 
 @pytest.mark.system
