@@ -52,6 +52,7 @@ TRANSFORMS: dict[str, Callable[[np.ndarray, np.random.Generator], np.ndarray]] =
     "tiny": lambda im, rng: cv2.resize(im, (64, 64), interpolation=cv2.INTER_AREA),
     "shifted signed": lambda im, rng: im.astype(np.int16) - 2048,
     "float": lambda im, rng: im.astype(np.float32) / 4095.0,
+    "half float": lambda im, rng: im.astype(np.float16),  # scaled to 16 bits it overflows
     "noisy": lambda im, rng: np.clip(im + rng.normal(0, 300, im.shape), 0, 4095).astype(np.uint16),
     "half blank": lambda im, rng: np.where(np.arange(im.shape[1])[None, :] < im.shape[1] // 2, im, 0).astype(im.dtype),
 }

@@ -1243,7 +1243,9 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     if image.dtype.kind not in "uif" or image.dtype.kind == "c":
         raise ContourError(f"expected grey levels as numbers, got {image.dtype}")
     if image.dtype.kind == "f" and np.all(np.isfinite(image)) and np.ptp(image) > 0:
-        # Floating-point grey levels (any scale) onto a 16-bit range: attenuation counts in quanta.
+        # Floating-point grey levels (any scale, half precision too) onto a 16-bit range in
+        # double precision: attenuation counts in quanta.
+        image = image.astype(np.float64)
         image = (image - image.min()) * (65535.0 / np.ptp(image))
     h, w = image.shape
     image, overlay = remove_overlays(image)
