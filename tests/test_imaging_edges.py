@@ -75,3 +75,22 @@ def test_a_recorded_search_finds_the_same_edges():
     assert np.array_equal(edges, edges_again) and share == share_again
     with pytest.raises(ValueError, match="needs 100 values"):
         BoneEdgeSearch.from_json({**doc, "shape": [10, 10]}, search.distort, search.undistort)
+
+
+def test_a_search_over_a_binned_frame_finds_the_edges_on_the_frames_own_pixels():
+    """A large frame is extracted binned (contours.WORKING_SIDE_PX); its search keeps the
+    binned attenuation and is asked, and answers, in the frame's own pixels. It finds the
+    outline as the search over the whole frame does, and a recording keeps the binning."""
+    binned = cv2.resize(_disk_frame(), (SIZE // 2, SIZE // 2), interpolation=cv2.INTER_AREA)
+    search = replace(BoneEdgeSearch.of_frame(binned, np.ones(binned.shape, bool), 0.015, 0.0),
+                     distort=lambda p: p + SHIFT, undistort=lambda p: p - SHIFT, binning=2)
+    ideal_centre = CENTRE - SHIFT
+    footprint = _footprint(ideal_centre + [4.0, 3.0], RADIUS + 7.0)
+    edges, share = search(footprint, 14.0)
+    radii = np.linalg.norm(edges - ideal_centre, axis=1)
+    assert len(edges) > 200 and share > 0.95
+    assert np.median(np.abs(radii - RADIUS)) < 1.0
+    again = BoneEdgeSearch.from_json(json.loads(json.dumps(search.to_json())), search.distort, search.undistort)
+    assert again.binning == 2 and np.array_equal(again(footprint, 14.0)[0], edges)
+    # Beyond the reach in the frame's own pixels, nothing (not twice as far in binned ones).
+    assert search(_footprint(ideal_centre, RADIUS + 25.0), 14.0)[1] == 0.0

@@ -56,11 +56,13 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.edges import (
     BoneEdgeSearch,
+    binned_to_unbinned,
     bone_edges,
     edges_along_normals,
     gradient,
     kept_in,
     outline_with_normals,
+    unbinned_to_binned,
 )
 from slamtka.solver.imaging.field import (
     FieldError,
@@ -148,6 +150,7 @@ class ExtractedContours:
     # The frame's bone edges near any outline the solver asks about (raw pixels; None for
     # contours not extracted here).
     bone_edge_search: BoneEdgeSearch | None = None
+    visible_cell_px: int = VISIBLE_CELL_PX  # raw pixels a side of a cell of bone_visible
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
@@ -160,7 +163,7 @@ class ExtractedContours:
         contour."""
         visible = None
         if self.bone_visible is not None:
-            visible = VisibleRegion.from_raw(self.bone_visible, VISIBLE_CELL_PX,
+            visible = VisibleRegion.from_raw(self.bone_visible, self.visible_cell_px,
                                              (camera.width, camera.height), distort)
         return ViewObservation(
             view_id, camera, {label: undistort(points) if len(points) else points
@@ -1207,13 +1210,56 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     if expected_pin_width_px is not None and not expected_pin_width_px > 0:
         raise ValueError(f"expected_pin_width_px must be positive, got {expected_pin_width_px}")
     try:
-        return _extract(pixels, config, expected_pins, expected_pin_width_px, expected_pin_length_px)
+        binning = _binning(pixels)
+        if binning == 1:
+            return _extract(pixels, config, expected_pins, expected_pin_width_px, expected_pin_length_px)
+        found = _extract(_binned(np.asarray(pixels), binning), config,
+                         None if expected_pins is None else unbinned_to_binned(np.asarray(expected_pins, float), binning),
+                         None if expected_pin_width_px is None else expected_pin_width_px / binning,
+                         None if expected_pin_length_px is None else expected_pin_length_px / binning)
+        return _unbinned(found, binning)
     except ContourError:
         raise
     except FieldError as exc:
         raise ContourError(str(exc)) from None
     except _UNFORESEEN as exc:
         raise ContourError(f"{UNFORESEEN_PREFIX} ({type(exc).__name__}: {exc})") from exc
+
+
+# The extraction's lengths in pixels (smoothing, edge search reach, the pins' least area,
+# the reach of metal and shutters) are made for frames of about a thousand pixels a side (a
+# 23 cm field at 0.2-0.3 mm a pixel). A flat panel's larger frame is binned to about that
+# first: extracted directly, idealised frames of 2048 px were refused in 2 of 4 cases (pins'
+# outlines off their contours) and 1536 px ones measured 0.5-0.8 deg off where 1024 px
+# frames are within 0.1 deg; binned, 2048 px frames measure within 0.13 deg (7 of 8).
+WORKING_SIDE_PX = 1024
+
+
+def _binning(pixels: np.ndarray) -> int:
+    """Pixels a side to bin a frame by (1: extracted as it is): the whole number that brings
+    its shorter side nearest :data:`WORKING_SIDE_PX`, for 2-D frames of numbers."""
+    image = np.asarray(pixels)
+    if image.ndim != 2 or image.dtype.kind not in "uif":
+        return 1  # not a frame: _extract says why
+    return max(1, int(round(min(image.shape) / WORKING_SIDE_PX)))
+
+
+def _binned(image: np.ndarray, binning: int) -> np.ndarray:
+    """The frame binned ``binning`` pixels a side: the mean of each block, in the frame's own
+    type (integer grey levels rounded); the last rows and columns that make no whole block
+    are left out."""
+    h, w = (side - side % binning for side in image.shape)
+    mean = image[:h, :w].astype(np.float64).reshape(h // binning, binning, w // binning, binning).mean(axis=(1, 3))
+    return mean if image.dtype.kind == "f" else np.rint(mean).astype(image.dtype)
+
+
+def _unbinned(found: ExtractedContours, binning: int) -> ExtractedContours:
+    """Contours extracted from a frame binned ``binning`` pixels a side, on the frame itself
+    (the diagnostics' lengths stay in the binned frame's pixels, which they say)."""
+    edge_search = None if found.bone_edge_search is None else replace(found.bone_edge_search, binning=binning)
+    bone, pin1, pin2 = (binned_to_unbinned(points, binning) for points in (found.bone, found.pin1, found.pin2))
+    return ExtractedContours(bone, pin1, pin2, found.diagnostics | {"binning": binning}, found.bone_visible,
+                             edge_search, found.visible_cell_px * binning)
 
 
 def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:
