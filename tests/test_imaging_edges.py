@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from slamtka.solver.imaging.edges import BoneEdgeSearch
+from slamtka.solver.imaging.edges import BoneEdgeSearch, edges_along_normals, gradient
 
 SIZE, CENTRE, RADIUS = 400, np.array([200.0, 210.0]), 100.0
 SHIFT = np.array([6.0, -4.0])  # raw = ideal + SHIFT: a "distortion" whose inverse is exact
@@ -94,3 +94,19 @@ def test_a_search_over_a_binned_frame_finds_the_edges_on_the_frames_own_pixels()
     assert again.binning == 2 and np.array_equal(again(footprint, 14.0)[0], edges)
     # Beyond the reach in the frame's own pixels, nothing (not twice as far in binned ones).
     assert search(_footprint(ideal_centre, RADIUS + 25.0), 14.0)[1] == 0.0
+
+
+def test_edges_are_sought_along_more_normals_than_one_remap_takes():
+    """cv2.remap takes fewer than 32767 rows: a noisy 2048 px frame's 40,000 bone contour
+    points failed ("contour extraction failed unexpectedly"). The same points searched all
+    at once and in two halves give the same edges."""
+    grad = gradient(_disk_frame())
+    angles = np.linspace(0.0, 2.0 * np.pi, 40_000, endpoint=False)
+    normals = np.column_stack([np.cos(angles), np.sin(angles)])
+    points = CENTRE + (RADIUS + 3.0) * normals
+    whole = edges_along_normals(grad, points, normals, 6.0, 0.015)
+    halves = [edges_along_normals(grad, points[part], normals[part], 6.0, 0.015)
+              for part in (slice(0, 20_000), slice(20_000, None))]
+    assert len(whole[0]) > 39_000
+    for k in range(4):
+        assert np.array_equal(whole[k], np.concatenate([half[k] for half in halves]), equal_nan=True)

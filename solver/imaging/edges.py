@@ -55,6 +55,17 @@ def outline_with_normals(mask: np.ndarray, min_length: int) -> tuple[np.ndarray,
 _SQRT_PEAK, _SQRT_ONSET = 0.765, 0.551
 
 
+_REMAP_ROWS = 32_000  # cv2.remap takes maps of fewer than 32767 rows (points, here)
+
+
+def _sampled(image: np.ndarray, map_u: np.ndarray, map_v: np.ndarray) -> np.ndarray:
+    """``image`` interpolated at (``map_u``, ``map_v``), a row per point, in blocks of rows
+    that cv2.remap takes (a noisy 2048 px frame gave 40,000 bone contour points)."""
+    return np.vstack([cv2.remap(image, map_u[i:i + _REMAP_ROWS], map_v[i:i + _REMAP_ROWS],
+                                cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                      for i in range(0, len(map_u), _REMAP_ROWS)])
+
+
 def edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray,
                          normals: np.ndarray, search: float, min_strength: float,
                          search_in: float | None = None,
@@ -73,8 +84,7 @@ def edges_along_normals(grad: tuple[np.ndarray, np.ndarray], points: np.ndarray,
     s = np.arange(-(search if search_in is None else search_in), search + step / 2, step)
     samples = points[:, None, :] + s[None, :, None] * normals[:, None, :]
     map_u, map_v = samples[..., 0].astype(np.float32), samples[..., 1].astype(np.float32)
-    gx = cv2.remap(grad[0], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    gy = cv2.remap(grad[1], map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    gx, gy = (_sampled(component, map_u, map_v) for component in grad)
     drop = -(gx * normals[:, 0:1] + gy * normals[:, 1:2])  # positive where the image falls outwards
     peak = np.argmax(drop, axis=1)
     best = np.clip(peak, 1, len(s) - 2)
