@@ -77,13 +77,13 @@ def test_a_recorded_search_finds_the_same_edges():
         BoneEdgeSearch.from_json({**doc, "shape": [10, 10]}, search.distort, search.undistort)
 
 
-def test_a_search_over_a_binned_frame_finds_the_edges_on_the_frames_own_pixels():
-    """A large frame is extracted binned (contours.WORKING_SIDE_PX); its search keeps the
-    binned attenuation and is asked, and answers, in the frame's own pixels. It finds the
-    outline as the search over the whole frame does, and a recording keeps the binning."""
-    binned = cv2.resize(_disk_frame(), (SIZE // 2, SIZE // 2), interpolation=cv2.INTER_AREA)
-    search = replace(BoneEdgeSearch.of_frame(binned, np.ones(binned.shape, bool), 0.015, 0.0),
-                     distort=lambda p: p + SHIFT, undistort=lambda p: p - SHIFT, binning=2)
+def test_a_search_over_a_reduced_frame_finds_the_edges_on_the_frames_own_pixels():
+    """A large frame is extracted reduced (contours.WORKING_SIDE_PX); its search keeps the
+    reduced attenuation and is asked, and answers, in the frame's own pixels. It finds the
+    outline as the search over the whole frame does, and a recording keeps the scale."""
+    reduced = cv2.resize(_disk_frame(), (SIZE // 2, SIZE // 2), interpolation=cv2.INTER_AREA)
+    search = replace(BoneEdgeSearch.of_frame(reduced, np.ones(reduced.shape, bool), 0.015, 0.0),
+                     distort=lambda p: p + SHIFT, undistort=lambda p: p - SHIFT, scale=2.0)
     ideal_centre = CENTRE - SHIFT
     footprint = _footprint(ideal_centre + [4.0, 3.0], RADIUS + 7.0)
     edges, share = search(footprint, 14.0)
@@ -91,8 +91,8 @@ def test_a_search_over_a_binned_frame_finds_the_edges_on_the_frames_own_pixels()
     assert len(edges) > 200 and share > 0.95
     assert np.median(np.abs(radii - RADIUS)) < 1.0
     again = BoneEdgeSearch.from_json(json.loads(json.dumps(search.to_json())), search.distort, search.undistort)
-    assert again.binning == 2 and np.array_equal(again(footprint, 14.0)[0], edges)
-    # Beyond the reach in the frame's own pixels, nothing (not twice as far in binned ones).
+    assert again.scale == 2 and np.array_equal(again(footprint, 14.0)[0], edges)
+    # Beyond the reach in the frame's own pixels, nothing (not twice as far in reduced ones).
     assert search(_footprint(ideal_centre, RADIUS + 25.0), 14.0)[1] == 0.0
 
 

@@ -75,19 +75,19 @@ def test_extraction_raises_only_its_own_named_error_whatever_the_frame(clean_fra
 
 
 def test_a_frame_of_twice_the_pixels_is_extracted_as_the_frame_itself(clean_frames):
-    """A flat panel's 2048 px frame is binned to the extraction's working size: a frame
+    """A flat panel's 2048 px frame is reduced to the extraction's working size: a frame
     whose pixels are each repeated 2 x 2 gives the contours of the frame itself, on its own
     pixels (each at the centre of its block), and a bone region of cells twice as large."""
     frame = clean_frames[0]
     large = np.repeat(np.repeat(frame, 2, axis=0), 2, axis=1)
     found, found_large = extract_contours(frame), extract_contours(large)
-    assert found_large.diagnostics["binning"] == 2 and "binning" not in found.diagnostics
+    assert found_large.diagnostics["working_scale"] == 2 and "working_scale" not in found.diagnostics
     for label, points in found.as_dict().items():
         assert len(points) > 0
-        assert np.array_equal(found_large.as_dict()[label], 2.0 * points + 0.5), label
+        assert np.allclose(found_large.as_dict()[label], 2.0 * points + 0.5, rtol=0.0, atol=1e-9), label
     assert np.array_equal(found_large.bone_visible, found.bone_visible)
     assert found_large.visible_cell_px == 2 * found.visible_cell_px
-    assert found_large.bone_edge_search is not None and found_large.bone_edge_search.binning == 2
+    assert found_large.bone_edge_search is not None and found_large.bone_edge_search.scale == 2
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
@@ -95,7 +95,7 @@ def test_a_frame_of_twice_the_pixels_is_extracted_as_the_frame_itself(clean_fram
 def test_frames_of_a_larger_detector_are_measured(monkeypatch, pixels, seed):
     """The same C-arm with a detector of 1536 or 2048 px a side: extracted directly, these
     frames measured seed 0 0.28 deg off in CTR and 0.8 in STR at 1536 px and refused seed 1
-    at 2048 px (pin 1's outline 3.8 px off its contour); binned, they measure as at 1024 px."""
+    at 2048 px (pin 1's outline 3.8 px off its contour); reduced, they measure as at 1024 px."""
     import slamtka.sim.simulate as simulated
 
     monkeypatch.setattr(simulated, "DETECTOR_PIXELS", pixels)

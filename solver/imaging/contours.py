@@ -56,13 +56,13 @@ import numpy as np
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.edges import (
     BoneEdgeSearch,
-    binned_to_unbinned,
     bone_edges,
     edges_along_normals,
     gradient,
     kept_in,
     outline_with_normals,
-    unbinned_to_binned,
+    to_frame_pixels,
+    to_working_pixels,
 )
 from slamtka.solver.imaging.field import (
     FieldError,
@@ -1210,14 +1210,14 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
     if expected_pin_width_px is not None and not expected_pin_width_px > 0:
         raise ValueError(f"expected_pin_width_px must be positive, got {expected_pin_width_px}")
     try:
-        binning = _binning(pixels)
-        if binning == 1:
+        scale = _working_scale(pixels)
+        if scale == 1.0:
             return _extract(pixels, config, expected_pins, expected_pin_width_px, expected_pin_length_px)
-        found = _extract(_binned(np.asarray(pixels), binning), config,
-                         None if expected_pins is None else unbinned_to_binned(np.asarray(expected_pins, float), binning),
-                         None if expected_pin_width_px is None else expected_pin_width_px / binning,
-                         None if expected_pin_length_px is None else expected_pin_length_px / binning)
-        return _unbinned(found, binning)
+        found = _extract(_reduced(np.asarray(pixels), scale), config,
+                         None if expected_pins is None else to_working_pixels(np.asarray(expected_pins, float), scale),
+                         None if expected_pin_width_px is None else expected_pin_width_px / scale,
+                         None if expected_pin_length_px is None else expected_pin_length_px / scale)
+        return _on_frame_pixels(found, scale)
     except ContourError:
         raise
     except FieldError as exc:
@@ -1228,38 +1228,47 @@ def extract_contours(pixels: np.ndarray, config: ContourConfig = ContourConfig()
 
 # The extraction's lengths in pixels (smoothing, edge search reach, the pins' least area,
 # the reach of metal and shutters) are made for frames of about a thousand pixels a side (a
-# 23 cm field at 0.2-0.3 mm a pixel). A flat panel's larger frame is binned to about that
-# first: extracted directly, idealised frames of 2048 px were refused in 2 of 4 cases (pins'
-# outlines off their contours) and 1536 px ones measured 0.5-0.8 deg off where 1024 px
-# frames are within 0.1 deg; binned, 2048 px frames measure within 0.13 deg (7 of 8).
+# 23 cm field at 0.2-0.3 mm a pixel). A flat panel's larger frame is reduced to about that
+# first, by a quarter-step factor (so that a cell of the bone region, VISIBLE_CELL_PX
+# reduced pixels, is a whole number of the frame's): extracted directly, idealised frames
+# of 2048 px were refused in 7 of 14 cases and 1536 px ones measured 0.3-0.8 deg off where
+# 1024 px frames are within 0.1 deg (docs/realism.md, twentieth pass).
 WORKING_SIDE_PX = 1024
+_SCALE_STEPS = 4  # a working scale is a whole number of quarters
 
 
-def _binning(pixels: np.ndarray) -> int:
-    """Pixels a side to bin a frame by (1: extracted as it is): the whole number that brings
-    its shorter side nearest :data:`WORKING_SIDE_PX`, for 2-D frames of numbers."""
+def _working_scale(pixels: np.ndarray) -> float:
+    """How many times to reduce a frame a side (1: extracted as it is): the quarter step
+    that brings its shorter side nearest :data:`WORKING_SIDE_PX`, for 2-D frames of numbers
+    larger than that by a quarter at least."""
     image = np.asarray(pixels)
     if image.ndim != 2 or image.dtype.kind not in "uif":
-        return 1  # not a frame: _extract says why
-    return max(1, int(round(min(image.shape) / WORKING_SIDE_PX)))
+        return 1.0  # not a frame: _extract says why
+    return max(1.0, round(_SCALE_STEPS * min(image.shape) / WORKING_SIDE_PX) / _SCALE_STEPS)
 
 
-def _binned(image: np.ndarray, binning: int) -> np.ndarray:
-    """The frame binned ``binning`` pixels a side: the mean of each block, in the frame's own
-    type (integer grey levels rounded); the last rows and columns that make no whole block
-    are left out."""
-    h, w = (side - side % binning for side in image.shape)
-    mean = image[:h, :w].astype(np.float64).reshape(h // binning, binning, w // binning, binning).mean(axis=(1, 3))
+def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
+    """The frame reduced ``scale`` times a side, each pixel the mean of the frame's it
+    covers, in the frame's own type (integer grey levels rounded); the last rows and
+    columns that make no whole block of ``scale`` steps are left out."""
+    block = int(round(scale * _SCALE_STEPS))  # frame pixels to _SCALE_STEPS reduced ones
+    h, w = (side - side % block for side in image.shape)
+    size = (int(round(w / scale)), int(round(h / scale)))
+    if scale == int(scale):
+        f = int(scale)
+        mean = image[:h, :w].astype(np.float64).reshape(h // f, f, w // f, f).mean(axis=(1, 3))
+    else:
+        mean = cv2.resize(image[:h, :w].astype(np.float64), size, interpolation=cv2.INTER_AREA)
     return mean if image.dtype.kind == "f" else np.rint(mean).astype(image.dtype)
 
 
-def _unbinned(found: ExtractedContours, binning: int) -> ExtractedContours:
-    """Contours extracted from a frame binned ``binning`` pixels a side, on the frame itself
-    (the diagnostics' lengths stay in the binned frame's pixels, which they say)."""
-    edge_search = None if found.bone_edge_search is None else replace(found.bone_edge_search, binning=binning)
-    bone, pin1, pin2 = (binned_to_unbinned(points, binning) for points in (found.bone, found.pin1, found.pin2))
-    return ExtractedContours(bone, pin1, pin2, found.diagnostics | {"binning": binning}, found.bone_visible,
-                             edge_search, found.visible_cell_px * binning)
+def _on_frame_pixels(found: ExtractedContours, scale: float) -> ExtractedContours:
+    """Contours extracted from a frame reduced ``scale`` times a side, on the frame itself
+    (the diagnostics' lengths stay in the reduced frame's pixels, which they say)."""
+    edge_search = None if found.bone_edge_search is None else replace(found.bone_edge_search, scale=scale)
+    bone, pin1, pin2 = (to_frame_pixels(points, scale) for points in (found.bone, found.pin1, found.pin2))
+    return ExtractedContours(bone, pin1, pin2, found.diagnostics | {"working_scale": scale}, found.bone_visible,
+                             edge_search, int(round(found.visible_cell_px * scale)))
 
 
 def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["BoneEdgeSearch", "binned_to_unbinned", "bone_edges", "edges_along_normals", "gradient", "kept_in",
-           "outline_with_normals", "unbinned_to_binned"]
+__all__ = ["BoneEdgeSearch", "bone_edges", "edges_along_normals", "gradient", "kept_in", "outline_with_normals",
+           "to_frame_pixels", "to_working_pixels"]
 
 Gradient = tuple[np.ndarray, np.ndarray]  # d/du and d/dv of the smoothed attenuation (float32)
 
@@ -171,7 +171,7 @@ class BoneEdgeSearch:
     offset_px: float  # outward shift of bone edges (ContourConfig.bone_edge_offset_px)
     distort: Callable[[np.ndarray], np.ndarray] = _unchanged  # undistorted (ideal) to raw pixels
     undistort: Callable[[np.ndarray], np.ndarray] = _unchanged  # raw to ideal pixels
-    binning: int = 1  # raw pixels a side to one pixel of ``attenuation`` (a large frame binned)
+    scale: float = 1.0  # raw pixels a side to one of ``attenuation`` (a large frame reduced)
 
     @staticmethod
     def of_frame(smooth: np.ndarray, visible: np.ndarray, min_strength: float,
@@ -190,7 +190,7 @@ class BoneEdgeSearch:
         return {"shape": list(self.attenuation.shape),
                 "attenuation_float16": packed(np.ascontiguousarray(self.attenuation, "<f2").tobytes()),
                 "visible_bits": packed(self.visible_bits.tobytes()),
-                "min_strength": self.min_strength, "offset_px": self.offset_px, "binning": self.binning}
+                "min_strength": self.min_strength, "offset_px": self.offset_px, "scale": self.scale}
 
     @staticmethod
     def from_json(doc: dict, distort: Callable[[np.ndarray], np.ndarray],
@@ -206,7 +206,7 @@ class BoneEdgeSearch:
             raise ValueError(f"a bone edge search of {h} x {w} px needs {h * w} values")
         return BoneEdgeSearch(attenuation.astype(np.float16).reshape(h, w), bits[:-(-h * w // 8)].copy(),
                               float(doc["min_strength"]), float(doc["offset_px"]), distort, undistort,
-                              int(doc.get("binning", 1)))
+                              float(doc.get("scale", 1.0)))
 
     def __call__(self, footprint: np.ndarray, reach_px: float) -> tuple[np.ndarray, float]:
         """Edge pixels (N, 2), undistorted, within ``reach_px`` of the outline of
@@ -218,25 +218,25 @@ class BoneEdgeSearch:
         # The normals carried through the distortion, which turns them only slightly.
         raw_normals = self.distort(outline + normals) - raw if len(outline) else normals
         raw_normals /= np.maximum(np.linalg.norm(raw_normals, axis=1, keepdims=True), 1e-9)
-        raw = unbinned_to_binned(raw, self.binning)
+        raw = to_working_pixels(raw, self.scale)
         visible = np.unpackbits(self.visible_bits, count=self.attenuation.size).reshape(
             self.attenuation.shape).astype(bool)
         seen = len(kept_in(raw, visible))
         if seen == 0:
             return np.zeros((0, 2)), 0.0
-        reach = reach_px / self.binning
+        reach = reach_px / self.scale
         edges, _, _ = bone_edges(gradient(self.attenuation.astype(np.float32)), raw, raw_normals,
                                  reach, reach, self.min_strength, self.offset_px)
-        edges = binned_to_unbinned(kept_in(edges, visible), self.binning)
+        edges = to_frame_pixels(kept_in(edges, visible), self.scale)
         return (self.undistort(edges) if len(edges) else np.zeros((0, 2))), len(edges) / seen
 
 
-def binned_to_unbinned(points: np.ndarray, binning: int) -> np.ndarray:
-    """Pixel positions (N, 2) on a frame binned ``binning`` pixels a side, on the frame
-    itself (a binned pixel's centre is its block's)."""
-    return points * binning + 0.5 * (binning - 1) if binning > 1 and len(points) else points
+def to_frame_pixels(points: np.ndarray, scale: float) -> np.ndarray:
+    """Pixel positions (N, 2) on a frame reduced ``scale`` times a side, on the frame itself
+    (pixel centres: a reduced pixel's centre is that of the frame's pixels it averages)."""
+    return (points + 0.5) * scale - 0.5 if scale != 1.0 and len(points) else points
 
 
-def unbinned_to_binned(points: np.ndarray, binning: int) -> np.ndarray:
-    """The inverse of :func:`binned_to_unbinned`."""
-    return (points - 0.5 * (binning - 1)) / binning if binning > 1 and len(points) else points
+def to_working_pixels(points: np.ndarray, scale: float) -> np.ndarray:
+    """The inverse of :func:`to_frame_pixels`."""
+    return (points + 0.5) / scale - 0.5 if scale != 1.0 and len(points) else points
