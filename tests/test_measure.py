@@ -86,3 +86,25 @@ def test_a_frame_misread_inverted_is_extracted_again_as_its_partner_reads(case, 
     (result,) = (tmp_path / "out").glob("case-*/*/result.json")
     assert json.loads(result.read_text())["status"] == "measured"
     assert asked == ["auto", "auto", "dark"]
+
+
+def test_frames_of_a_flat_panels_larger_detector_are_measured(tmp_path):
+    """A 2048 px detector over the same field (``simulate --detector-pixels``): the frames
+    go through the service's pipeline at their own size (reduced for extraction only) and
+    are measured; the SC shows them as they came."""
+    folder = tmp_path / "case"
+    assert main(["simulate", "--out", str(folder), "--images", "--seed", "2", "--detector-pixels", "2048"]) == 0
+    assert pydicom.dcmread(folder / "frames" / "view1.dcm").Rows == 2048
+    assert main(_args(folder, tmp_path / "out")) == 0
+    (result,) = (tmp_path / "out").glob("case-*/*/result.json")
+    doc = json.loads(result.read_text())
+    truth = json.loads((folder / "ground_truth.json").read_text())
+    assert doc["status"] == "measured"
+    assert abs(doc["angles"]["ctr_deg"] - truth["ctr_deg"]) < 0.5
+    assert abs(doc["angles"]["str_deg"] - truth["str_deg"]) < 0.5
+    assert pydicom.dcmread(result.parent / "sc-view1.dcm").Rows == 2048
+
+
+def test_a_detector_size_out_of_range_is_refused_in_one_line(tmp_path, capsys):
+    assert main(["simulate", "--out", str(tmp_path / "case"), "--detector-pixels", "10"]) == 2
+    assert "--detector-pixels must be 256 to 4096, got 10" in capsys.readouterr().err

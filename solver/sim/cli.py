@@ -53,8 +53,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if room.names and room.names != ["views"] and not getattr(args, "images", False):
         raise ValueError("operating-room nuisances other than the views are in the frames: add --images")
     views = view_angles(room.draw(args.seed), args.views)
+    if args.detector_pixels is not None and not 256 <= args.detector_pixels <= 4096:
+        raise ValueError(f"--detector-pixels must be 256 to 4096, got {args.detector_pixels}")
     config = SimulationConfig(view_angles_deg=views, noise_px=args.noise_px, seed=args.seed,
-                              init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd)
+                              init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd,
+                              detector_pixels=args.detector_pixels)
     case = simulate_case(plan, config)
     truth = {
         "ctr_deg": case.truth_ctr_deg,
@@ -110,6 +113,9 @@ def add_simulate_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init-rot-sd", type=float, default=0.1, help="initial rotation error SD, rad")
     p.add_argument("--init-trans-sd", type=float, default=20.0, help="initial translation error SD, mm")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--detector-pixels", type=int, metavar="N",
+                   help="the detector's pixels a side (default 1024; a flat panel's 1536 or 2048 "
+                        "over the same field)")
     p.add_argument("--images", action="store_true",
                    help="also render the views as DICOM X-ray frames with their true outlines")
     p.add_argument("--calibration-images", type=int, metavar="N",

@@ -32,8 +32,11 @@ DETECTOR_FIELD_MM = 230.0
 DETECTOR_PIXELS = 1024
 
 
-def default_camera() -> Camera:
-    return Camera.from_geometry(SOURCE_TO_DETECTOR_MM, DETECTOR_FIELD_MM, DETECTOR_PIXELS)
+def default_camera(pixels: int | None = None) -> Camera:
+    """The simulated C-arm's camera, its detector ``pixels`` a side (default
+    :data:`DETECTOR_PIXELS`; a flat panel's 1536 or 2048 px keep the same field)."""
+    return Camera.from_geometry(SOURCE_TO_DETECTOR_MM, DETECTOR_FIELD_MM,
+                                DETECTOR_PIXELS if pixels is None else pixels)
 
 
 class SimulationError(RuntimeError):
@@ -61,6 +64,7 @@ class SimulationConfig:
     # displacement along its normals with this SD (0: the protocol of docs/evaluation.md).
     segmentation_sd_mm: float = 0.0
     seed: int = 0
+    detector_pixels: int | None = None  # a side of the detector (None: DETECTOR_PIXELS)
 
     @staticmethod
     def at_level(level: int, seed: int, noise_px: float = 2.0) -> SimulationConfig:
@@ -173,7 +177,7 @@ def segmentation_error(mesh: trimesh.Trimesh, sd_mm: float,
 
 def simulate_case(plan: Plan, config: SimulationConfig = SimulationConfig()) -> SimulatedCase:
     rng = np.random.default_rng(config.seed)
-    camera = default_camera()
+    camera = default_camera(config.detector_pixels)
     pins, ctr_deg, str_deg = _place_pins(plan, rng)
     views_true = _view_poses(plan, config.view_angles_deg, rng)
     bone = trimesh.util.concatenate([m.to_trimesh() for m in plan.bone_meshes()])
