@@ -53,11 +53,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if room.names and room.names != ["views"] and not getattr(args, "images", False):
         raise ValueError("operating-room nuisances other than the views are in the frames: add --images")
     views = view_angles(room.draw(args.seed), args.views)
-    if args.detector_pixels is not None and not 256 <= args.detector_pixels <= 4096:
-        raise ValueError(f"--detector-pixels must be 256 to 4096, got {args.detector_pixels}")
+    pixels = getattr(args, "detector_pixels", None)
+    if pixels is not None and not 256 <= pixels <= 4096:
+        raise ValueError(f"--detector-pixels must be 256 to 4096, got {pixels}")
     config = SimulationConfig(view_angles_deg=views, noise_px=args.noise_px, seed=args.seed,
                               init_rot_sd_rad=args.init_rot_sd, init_trans_sd_mm=args.init_trans_sd,
-                              detector_pixels=args.detector_pixels)
+                              detector_pixels=pixels)
     case = simulate_case(plan, config)
     truth = {
         "ctr_deg": case.truth_ctr_deg,
