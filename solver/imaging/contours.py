@@ -1240,7 +1240,7 @@ _SCALE_STEPS = 4  # a working scale is a whole number of quarters
 def _working_scale(pixels: np.ndarray) -> float:
     """How many times to reduce a frame a side (1: extracted as it is): the quarter step
     that brings its shorter side nearest :data:`WORKING_SIDE_PX`, for 2-D frames of numbers
-    larger than that by a quarter at least."""
+    (1 up to a shorter side of 1152 px, 9/8 of it)."""
     image = np.asarray(pixels)
     if image.ndim != 2 or image.dtype.kind not in "uif":
         return 1.0  # not a frame: _extract says why
@@ -1253,12 +1253,12 @@ def _reduced(image: np.ndarray, scale: float) -> np.ndarray:
     columns that make no whole block of ``scale`` steps are left out."""
     block = int(round(scale * _SCALE_STEPS))  # frame pixels to _SCALE_STEPS reduced ones
     h, w = (side - side % block for side in image.shape)
-    size = (int(round(w / scale)), int(round(h / scale)))
     if scale == int(scale):
         f = int(scale)
         mean = image[:h, :w].astype(np.float64).reshape(h // f, f, w // f, f).mean(axis=(1, 3))
     else:
-        mean = cv2.resize(image[:h, :w].astype(np.float64), size, interpolation=cv2.INTER_AREA)
+        mean = cv2.resize(image[:h, :w].astype(np.float64), (round(w / scale), round(h / scale)),
+                          interpolation=cv2.INTER_AREA)
     return mean if image.dtype.kind == "f" else np.rint(mean).astype(image.dtype)
 
 
