@@ -187,10 +187,10 @@ class JointProblem:
         nearer, none to either where the two pass about as near; a pin's outline under the
         other pin's shadow has no edge to lie on and is not charged. A view shared once
         stays shared, its edges shared out again at each call."""
-        if not self.config.sampling.share_pin_edges:
-            return self, []
         views, shared = list(self.views), list[str]()
         for k, view in enumerate(self.views):
+            if view.pin_edges is None and not self.config.sampling.share_pin_edges:
+                continue
             shadows = self._pin_shadows(k, poses) if view.pins_opaque else None
             if shadows is None or (view.pin_edges is None and not self._touching(shadows)):
                 continue

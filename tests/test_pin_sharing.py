@@ -75,6 +75,22 @@ def test_contours_drawn_pin_by_pin_keep_their_names(phantom_plan, in_line_case):
     assert unasked.with_pin_edges_shared(poses) == (unasked, [])
 
 
+def test_a_bar_the_extraction_gave_both_pins_is_shared_out_from_the_first_solve(phantom_plan, in_line_case):
+    """Where the extraction saw the pins one behind the other, it gives both pins the bar's
+    edges and pools them (``pin_edges``): the fit shares them out from the first solve on,
+    unasked, rather than fit each pin to the whole bar (which slid and turned them)."""
+    case, poses = in_line_case
+    pooled = np.vstack([case.views[0].contours[label] for label in PIN_LABELS])
+    behind = replace(case.views[0].with_contours(pin1=pooled, pin2=pooled), pins_opaque=True,
+                     pin_edges=pooled)
+    problem = JointProblem(phantom_plan, [behind, case.views[1]], SolverConfig())
+    shared_problem, shared = problem.with_pin_edges_shared(poses)
+    assert shared == [behind.view_id]
+    got = shared_problem.views[0]
+    assert sum(len(got.contours[label]) for label in PIN_LABELS) <= len(pooled)
+    assert len(got.contours["pin1"]) < len(pooled) and len(got.contours["pin2"]) < len(pooled)
+
+
 @pytest.mark.system
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_pins_that_touch_end_to_end_in_one_view_are_measured():

@@ -165,12 +165,17 @@ class ExtractedContours:
         if self.bone_visible is not None:
             visible = VisibleRegion.from_raw(self.bone_visible, self.visible_cell_px,
                                              (camera.width, camera.height), distort)
+        contours = {label: undistort(points) if len(points) else points
+                    for label, points in self.as_dict().items()}
+        # Pins seen one behind the other were given the one bar's edges each: the fit shares
+        # them out from the start (a first solve that fits both pins to the whole bar slides
+        # them along it and turns them: surgeon's views seed 16, 30 deg).
+        behind = self.diagnostics.get("pins_overlap") == "behind"
         return ViewObservation(
-            view_id, camera, {label: undistort(points) if len(points) else points
-                              for label, points in self.as_dict().items()},
-            dict(self.diagnostics.get("missing", {})), visible,
+            view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
-                self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True)
+                self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True,
+            pin_edges=contours["pin1"] if behind else None)
 
 
 # -- pins ----------------------------------------------------------------------------------
