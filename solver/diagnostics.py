@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
-from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence
+from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence, plane_elevation_deg
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -88,6 +88,9 @@ class SolveDiagnostics:
     pin_grazes: tuple[PinGraze, ...]  # methods with edge points
     outlines: tuple[OutlineFit, ...]  # every model in every view
     pin_divergence: PinDivergence  # of the pins' axes from parallel, split by their plane
+    # The most, over the views, of the X-ray source's elevation out of the pins' plane (deg):
+    # small where every view sees that plane edge-on.
+    pins_plane_elevation_deg: float
     view_separation_deg: float  # of the solved views
     pin_overlaps: tuple[PinOverlap, ...] = ()  # every view, at the solved poses
     # Where the bone contours were sought near the model's outline: per view, the share of
@@ -191,12 +194,15 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         PinGraze(problem.views[t.view.position].view_id, t.body.label, t.graze_offset_rms_mm(state))
         for t in terms if isinstance(t, BackProjectionTerm) and t.body in problem.pin_keys
         and t.view is not None)
-    divergence = pin_divergence([state.poses[key] for key in problem.pin_keys], problem.plan.pin_length())
+    pins = [state.poses[key] for key in problem.pin_keys]
+    divergence = pin_divergence(pins, problem.plan.pin_length())
+    elevation = max(plane_elevation_deg(pins, state.poses[key], problem.plan.pin_length())
+                    for key in problem.view_keys)
     return SolveDiagnostics(
         rms, n_residuals,
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
         strays, problem.config.sampling.max_ray_miss_mm, grazes,
-        outline_fits(problem, state, LABELS), divergence,
+        outline_fits(problem, state, LABELS), divergence, elevation,
         view_separation_deg([state.poses[key] for key in problem.view_keys]),
         pin_overlaps(problem, state), _sought_edge_shares(problem, state))
 

@@ -18,9 +18,9 @@ from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagno
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.solver_config import GateLimits
 
-__all__ = ["Why", "angle_uncertainty", "contour_misfit", "hidden_outline", "input_refusal",
-           "odometry_misfit", "outline_misfit", "pin_divergence", "pins_in_line", "pins_overlap",
-           "shared_bar_unexplained", "sought_edges_missing", "view_separation"]
+__all__ = ["Why", "angle_uncertainty", "contour_misfit", "edge_on_plane_confirmed", "hidden_outline",
+           "input_refusal", "odometry_misfit", "outline_misfit", "pin_divergence", "pins_in_line",
+           "pins_overlap", "shared_bar_unexplained", "sought_edges_missing", "view_separation"]
 
 
 class Why(StrEnum):
@@ -167,17 +167,35 @@ def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:
     alone (seed 16 in eight scenes: 3.0-3.8 deg, the angles within 0.2 deg; at 2.6-3.5 sd
     it passes, at 4.2-5.7 sd it is still refused). A turn the views do resolve is a wrong
     pose however flat (surgeon's views seed 14: 4.4 deg within the plane, 10.6 sd, the
-    plane 4.9 deg off)."""
+    plane 4.9 deg off), unless a view the encoders confirm sees the plane edge-on
+    (:func:`edge_on_plane_confirmed`)."""
     divergence, limit_deg = d.pin_divergence, limits.max_pin_divergence_deg
     if divergence.out_of_plane > limit_deg:
         return (f"the pins are {divergence.total:.1f} deg from parallel ({divergence.out_of_plane:.1f} deg "
                 f"across their plane > {limit_deg:g} deg): the cutting block holds them parallel, "
                 f"so a pin's pose is wrong")
-    unresolved = divergence.in_plane <= limits.max_unresolved_turn_sds * divergence.in_plane_sd
+    unresolved = (edge_on_plane_confirmed(d, limits)
+                  or divergence.in_plane <= limits.max_unresolved_turn_sds * divergence.in_plane_sd)
     if divergence.total > limit_deg and not unresolved:
         return (f"the pins are {divergence.total:.1f} deg from parallel (> {limit_deg:g} deg): "
                 f"the cutting block holds them parallel, so a pin's pose is wrong")
     return None
+
+
+def edge_on_plane_confirmed(d: SolveDiagnostics, limits: GateLimits) -> bool:
+    """Whether every view sees the pins' plane edge-on from poses the encoders confirm:
+    each view's line of pins seen from its source is then that plane, and nothing shows,
+    nor changes the angles, how the pins turn within it (surgeon's views seeds 16 and 27:
+    both views within 1.5 deg of edge-on, the pins 25-33 deg apart within their plane even
+    solved from the truth, the angles within 0.45 deg). A view that sees the plane at a
+    slant resolves that turn, so there it stays a sign of a wrong pose (the real tibia's
+    views seed 27, one view 2.0 deg off edge-on: the pins 6.3 deg apart, STR 0.88 deg
+    off). Unconfirmed, edge-on views may be the wrong poses that made them so (real tibia
+    seed 2073 at level 2 without the encoders: view 2 8 deg off, the pins 28 deg apart in a
+    plane both views see within 0.9 deg of edge-on, CTR 1.45 deg off)."""
+    odometry = d.residual_rms.get("E_odo")
+    return (d.pins_plane_elevation_deg <= limits.max_edge_on_elevation_deg and odometry is not None
+            and odometry <= limits.max_confirming_odometry_rms_sigma)
 
 
 def odometry_misfit(d: SolveDiagnostics, limits: GateLimits) -> str | None:

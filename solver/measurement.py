@@ -18,7 +18,7 @@ from slamtka.solver.anatomy import Landmarks, resection_angles
 from slamtka.solver.geometry import Pose
 
 __all__ = ["PinDivergence", "ResectionPlane", "angle_covariance", "fit_resection_plane",
-           "pin_divergence", "with_in_plane_sd"]
+           "pin_divergence", "plane_elevation_deg", "with_in_plane_sd"]
 
 _AXIS_SAMPLES = 16
 
@@ -82,6 +82,14 @@ def pin_divergence(pins: tuple[Pose, Pose] | list[Pose], pin_length_mm: float) -
     turn = np.arctan2(abs(normal @ np.cross(flat[0], flat[1])), flat[0] @ flat[1])
     total = np.arccos(np.clip(axes[0] @ axes[1], -1.0, 1.0))
     return PinDivergence(*(float(np.degrees(a)) for a in (total, abs(tilts[0] - tilts[1]), turn)))
+
+
+def plane_elevation_deg(pins: list[Pose], T_cam_tibia: Pose, pin_length_mm: float) -> float:
+    """How far (deg) a view's X-ray source lies out of the plane through the pins, seen from
+    the pins: 0 where the view sees that plane edge-on (both pins on one line)."""
+    centroid, normal = _plane_through(pins, pin_length_mm)
+    to_source = T_cam_tibia.inverse().t - centroid
+    return float(np.degrees(np.arcsin(min(1.0, abs(normal @ to_source) / np.linalg.norm(to_source)))))
 
 
 def with_in_plane_sd(divergence: PinDivergence, pins: list[Pose], pin_covariance: np.ndarray,
