@@ -183,19 +183,19 @@ def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:
 
 
 def edge_on_plane_confirmed(d: SolveDiagnostics, limits: GateLimits) -> bool:
-    """Whether every view sees the pins' plane edge-on from poses the encoders confirm:
-    each view's line of pins seen from its source is then that plane, and nothing shows,
-    nor changes the angles, how the pins turn within it (surgeon's views seeds 16 and 27:
-    both views within 1.5 deg of edge-on, the pins 25-33 deg apart within their plane even
-    solved from the truth, the angles within 0.45 deg). A view that sees the plane at a
-    slant resolves that turn, so there it stays a sign of a wrong pose (the real tibia's
-    views seed 27, one view 2.0 deg off edge-on: the pins 6.3 deg apart, STR 0.88 deg
-    off). Unconfirmed, edge-on views may be the wrong poses that made them so (real tibia
-    seed 2073 at level 2 without the encoders: view 2 8 deg off, the pins 28 deg apart in a
-    plane both views see within 0.9 deg of edge-on, CTR 1.45 deg off)."""
-    odometry = d.residual_rms.get("E_odo")
-    return (d.pins_plane_elevation_deg <= limits.max_edge_on_elevation_deg and odometry is not None
-            and odometry <= limits.max_confirming_odometry_rms_sigma)
+    """Whether every view sees the pins' plane edge-on, from poses solved held to the
+    encoders' motion: each view's line of pins seen from its source is then that plane,
+    and nothing shows, nor changes the angles, how the pins turn within it (surgeon's views
+    seeds 16 and 27: both views within 1.5 deg of edge-on, the pins 25-33 deg apart within
+    their plane even solved from the truth, the angles within 0.45 deg). A view that sees
+    the plane at a slant resolves that turn, so there it stays a sign of a wrong pose (the
+    real tibia's views seed 27, one view 2.0 deg off edge-on: the pins 6.3 deg apart, STR
+    0.88 deg off). Without the encoders, edge-on views may be the wrong poses that made
+    them so (real tibia seed 2073 at level 2 solved without them: view 2 8 deg off, the
+    pins 28 deg apart in a plane both views see within 0.9 deg of edge-on, CTR 1.45 deg
+    off); with them, a solve whose views the encoders contradict is refused by its own gate
+    (:func:`odometry_misfit`)."""
+    return d.pins_plane_elevation_deg <= limits.max_edge_on_elevation_deg and "E_odo" in d.residual_rms
 
 
 def odometry_misfit(d: SolveDiagnostics, limits: GateLimits) -> str | None:

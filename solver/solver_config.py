@@ -86,11 +86,9 @@ class GateLimits:
     # deviations: the views do not resolve it (gates.pin_divergence).
     max_unresolved_turn_sds: float = 4.0
     # A view whose source lies within this of the pins' plane sees it edge-on: where every
-    # view does and the encoders confirm their poses (E_odo within this many sigma RMS),
-    # nothing resolves the pins' turn within that plane, nor does the plane depend on it
-    # (gates.edge_on_plane_confirmed).
+    # view does, in a solve held to the encoders' motion, nothing resolves the pins' turn
+    # within that plane, nor does the plane depend on it (gates.edge_on_plane_confirmed).
     max_edge_on_elevation_deg: float = 1.5
-    max_confirming_odometry_rms_sigma: float = 3.5
     max_odometry_rms_sigma: float = 7.5
     max_coarse_bone_median_px: float = 4.0
     min_sought_edge_share: float = 0.5  # of the outline, where its edges were sought near it

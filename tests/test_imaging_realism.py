@@ -324,22 +324,46 @@ def test_pins_one_behind_the_other_in_one_bar_are_measured(seed):
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 @pytest.mark.parametrize("seed", [16, 27])
-def test_pins_in_a_plane_a_confirmed_view_sees_edge_on_are_measured_however_turned(seed):
+def test_pins_in_a_plane_every_view_sees_edge_on_are_measured_however_turned(seed):
     """Surgeon's views seeds 16 and 27: an AP view sees the pins end to end on one line, a
     lateral view one behind the other. Their plane is that line seen from the source, but
     nothing shows how they turn within it: they come out 25-33 deg apart there, even
-    solved from the truth. Both views within 1.5 deg of edge-on, their poses confirmed by
-    the encoders, fix the plane, and the angles are right (refused before as not parallel)."""
+    solved from the truth. Both views within 1.5 deg of edge-on, their poses held to the
+    encoders' motion, fix the plane, and the angles are right (refused before as not
+    parallel)."""
     result = realism_case(("phantom", "views", seed, (1,), str(SHARED_DATA)))["levels"][1]
     assert result["status"] == "success", result
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+@pytest.mark.parametrize("scene_name", ["dose", "flat_panel"])
+def test_pins_in_a_plane_both_views_see_edge_on_are_measured_despite_the_nuisance(scene_name):
+    """Seed 16: both views see the pins' plane within 0.6 deg of edge-on; at low dose or on
+    a flat panel the pins come out 3.2-3.8 deg apart within it, more than 4 times what the
+    covariance says the views resolve of that turn, and the views' motion sits 4.1-4.3
+    sigma RMS off the encoders'. Edge-on in every view, the turn is excused, and the angles
+    are right within 0.2 deg (refused before)."""
+    result = realism_case(("phantom", scene_name, 16, (1,), str(SHARED_DATA)))["levels"][1]
+    assert result["status"] == "success", result
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "knee-smith2019" / "tibia-right.stl").is_file(),
+                    reason="shared meshes absent")
+def test_pins_turned_in_a_plane_one_view_sees_at_a_slant_are_not_measured():
+    """The real tibia's surgeon's views seed 27: view 1 sees the pins' plane edge-on (0.6
+    deg), view 2 2.0 deg off it, at a slant that resolves the pins' turn. Their 6.3 deg turn
+    is not excused, and the case is refused (excused where one edge-on view sufficed, it
+    was measured 0.88 deg off in STR)."""
+    result = realism_case(("real", "views", 27, (1,), str(SHARED_DATA)))["levels"][1]
+    assert result["status"] == "refused", result
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_a_wrong_naming_in_a_plane_seen_edge_on_is_not_excused_its_turn():
-    """Scatter seed 16: both views see the pins' plane within 1.5 deg of edge-on, but the
-    pins' names in view 2 are swapped, the views bent to fit them (E_odo 5.1 sigma RMS):
-    the encoders do not confirm the views, the pins' 3.4 deg turn is not excused, and the
-    case is refused (excused, its other naming was measured 1.07 deg off in STR)."""
+    """Scatter seed 16: the pins' names in view 2 come out swapped, the views bent to fit
+    them (E_odo 5.1 sigma RMS), so that view 2 sees the pins' plane 2.0 deg off edge-on: the
+    pins' 3.4 deg turn within it is not excused, and the case is refused (excused where one
+    edge-on view sufficed, its other naming was measured 1.07 deg off in STR)."""
     result = realism_case(("phantom", "scatter", 16, (1,), str(SHARED_DATA)))["levels"][1]
     assert result["status"] == "refused"
     assert "3.4 deg from parallel" in result["reason"]
