@@ -167,8 +167,8 @@ def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:
     alone (seed 16 in eight scenes: 3.0-3.8 deg, the angles within 0.2 deg; at 2.6-3.5 sd
     it passes, at 4.2-5.7 sd it is still refused). A turn the views do resolve is a wrong
     pose however flat (surgeon's views seed 14: 4.4 deg within the plane, 10.6 sd, the
-    plane 4.9 deg off), unless a view the encoders confirm sees the plane edge-on
-    (:func:`edge_on_plane_confirmed`)."""
+    plane 4.9 deg off), unless every view of a solve held to the encoders sees the plane
+    edge-on (:func:`edge_on_plane_confirmed`)."""
     divergence, limit_deg = d.pin_divergence, limits.max_pin_divergence_deg
     if divergence.out_of_plane > limit_deg:
         return (f"the pins are {divergence.total:.1f} deg from parallel ({divergence.out_of_plane:.1f} deg "

@@ -175,9 +175,10 @@ class JointProblem:
     def with_pin_edges_shared(self, poses: Mapping[PoseKey, Pose]) -> tuple[JointProblem, list[str]]:
         """The problem with the pin edges of each view where the two pins' shadows lie on
         each other (``SamplingConfig.shared_pin_shadow_gap_px``) shared out by the fit, and
-        the ids of those views. Only views whose pins are opaque
-        (:attr:`ViewObservation.pins_opaque`) are shared out: contours drawn pin by pin
-        name each pin's edges already.
+        the ids of those views: where ``SamplingConfig.share_pin_edges`` asks, and always in
+        a view whose edges are pooled already (the extraction gave both pins one bar). Only
+        views whose pins are opaque (:attr:`ViewObservation.pins_opaque`) are shared out:
+        contours drawn pin by pin name each pin's edges already.
 
         Seen one behind the other, the pins cast one bar, and the extraction's split of its
         edges into two pins is a guess (idealised seed 12 was split about 150 px from where

@@ -167,9 +167,9 @@ class ExtractedContours:
                                              (camera.width, camera.height), distort)
         contours = {label: undistort(points) if len(points) else points
                     for label, points in self.as_dict().items()}
-        # Pins seen one behind the other were given the one bar's edges each: the fit shares
-        # them out from the start (a first solve that fits both pins to the whole bar slides
-        # them along it and turns them: surgeon's views seed 16, 30 deg).
+        # Pins seen one behind the other were given the one bar's edges each: pooled, the fit
+        # shares them out from the first solve on (fitted whole, the bar pulls each pin
+        # towards both pins' ends).
         behind = self.diagnostics.get("pins_overlap") == "behind"
         return ViewObservation(
             view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
