@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
-from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence, plane_elevation_deg
+from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence, plane_elevations_deg
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -196,15 +196,14 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         and t.view is not None)
     pins = [state.poses[key] for key in problem.pin_keys]
     divergence = pin_divergence(pins, problem.plan.pin_length())
-    elevation = max(plane_elevation_deg(pins, state.poses[key], problem.plan.pin_length())
-                    for key in problem.view_keys)
+    views = [state.poses[key] for key in problem.view_keys]
+    elevation = max(plane_elevations_deg(pins, views, problem.plan.pin_length()))
     return SolveDiagnostics(
         rms, n_residuals,
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
         strays, problem.config.sampling.max_ray_miss_mm, grazes,
         outline_fits(problem, state, LABELS), divergence, elevation,
-        view_separation_deg([state.poses[key] for key in problem.view_keys]),
-        pin_overlaps(problem, state), _sought_edge_shares(problem, state))
+        view_separation_deg(views), pin_overlaps(problem, state), _sought_edge_shares(problem, state))
 
 
 def _sought_edge_shares(problem: JointProblem, state: State) -> tuple[tuple[str, float], ...]:

@@ -18,7 +18,7 @@ from slamtka.solver.anatomy import Landmarks, resection_angles
 from slamtka.solver.geometry import Pose
 
 __all__ = ["PinDivergence", "ResectionPlane", "angle_covariance", "fit_resection_plane",
-           "pin_divergence", "plane_elevation_deg", "with_in_plane_sd"]
+           "pin_divergence", "plane_elevations_deg", "with_in_plane_sd"]
 
 _AXIS_SAMPLES = 16
 
@@ -84,12 +84,15 @@ def pin_divergence(pins: tuple[Pose, Pose] | list[Pose], pin_length_mm: float) -
     return PinDivergence(*(float(np.degrees(a)) for a in (total, abs(tilts[0] - tilts[1]), turn)))
 
 
-def plane_elevation_deg(pins: list[Pose], T_cam_tibia: Pose, pin_length_mm: float) -> float:
-    """How far (deg) a view's X-ray source lies out of the plane through the pins, seen from
-    the pins: 0 where the view sees that plane edge-on (both pins on one line)."""
+def plane_elevations_deg(pins: list[Pose], T_cam_tibia: list[Pose], pin_length_mm: float) -> list[float]:
+    """How far (deg) each view's X-ray source lies out of the plane through the pins, seen
+    from the pins: 0 where a view sees that plane edge-on (both pins on one line)."""
     centroid, normal = _plane_through(pins, pin_length_mm)
-    to_source = T_cam_tibia.inverse().t - centroid
-    return float(np.degrees(np.arcsin(min(1.0, abs(normal @ to_source) / np.linalg.norm(to_source)))))
+    elevations = []
+    for T in T_cam_tibia:
+        to_source = T.inverse().t - centroid
+        elevations.append(float(np.degrees(np.arcsin(min(1.0, abs(normal @ to_source) / np.linalg.norm(to_source))))))
+    return elevations
 
 
 def with_in_plane_sd(divergence: PinDivergence, pins: list[Pose], pin_covariance: np.ndarray,
