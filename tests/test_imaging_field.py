@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from slamtka.solver.imaging.contours import ContourConfig, _broad_opaque
-from slamtka.solver.imaging.field import components, fill_holes
+from slamtka.solver.imaging.field import components, fill_holes, remove_overlays
 
 
 def _speckle(seed: int, share: float = 0.45) -> np.ndarray:
@@ -58,3 +58,22 @@ def test_broad_metal_over_its_box_is_the_whole_frames_opening(blades):
     broad = _broad_opaque(A, valid, config)
     assert broad.any() == bool(blades) and not broad[105, 200]
     assert np.array_equal(broad, _broad_reference(A, valid, config))
+
+
+def test_a_clipped_pin_broken_by_noise_is_no_burned_in_text():
+    """A window that clipped an inverted frame's pin leaves it at the extreme level only in
+    patches between the noise, with an unsharp-masking halo around it: no patch is a stroke
+    of text, while text at that level beside it still is."""
+    rng = np.random.default_rng(3)
+    image = 300.0 + rng.normal(0.0, 8.0, (200, 300))
+    pin = (slice(90, 112), slice(40, 260))
+    image[pin] = 1033.0 - np.abs(rng.normal(0.0, 20.0, image[pin].shape))  # up to ~6% below the top
+    image[86:90, 40:260] -= 150.0  # the halo beside it
+    image[112:116, 40:260] -= 150.0
+    image[20:50, 20:23] = image[20:23, 20:40] = 1023.0  # an "F" of burned-in text
+    image[34:37, 20:35] = 1023.0
+    image = np.clip(image, 0.0, 1023.0).round().astype(np.uint16)
+    assert 0.2 < np.mean(image[pin] == 1023) < 0.6  # clipped in patches
+    _, strokes = remove_overlays(image)
+    assert not strokes[pin].any()
+    assert strokes[20:50, 20:23].all()
