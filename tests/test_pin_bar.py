@@ -1,0 +1,34 @@
+"""A pin's fitted bar: as wide as its shaft, whatever small thing touches its side."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamtka.solver.imaging.contours import _fit_bar
+from slamtka.solver.imaging.edges import outline_with_normals
+
+
+def _pixels(mask: np.ndarray) -> np.ndarray:
+    ys, xs = np.nonzero(mask)
+    return np.column_stack([xs, ys]).astype(float)
+
+
+def test_a_stroke_touching_a_pins_side_does_not_widen_its_bar():
+    """Marker seed 15: a lead marker's thin stroke across pin 1's side made its bar 62 px
+    wide for a 21 px shaft, and the shaft's edges, then 20 px inside the bar's sides, were
+    left off the pin."""
+    mask = np.zeros((200, 600), bool)
+    mask[90:111, 150:450] = True  # the shaft, 21 px wide
+    mask[50:90, 300:306] = True  # the stroke: 40 px off its side, 4% of the shadow
+    bar = _fit_bar(_pixels(mask))
+    assert 2.0 * bar.half_width < 23.0
+    assert abs(bar.half_length - 150.0) < 3.0
+
+
+def test_a_bars_outline_points_give_its_width():
+    """Edge points all lie on the sides: their top percentile is the half-width."""
+    mask = np.zeros((200, 600), bool)
+    mask[90:111, 50:550] = True
+    edges, _ = outline_with_normals(mask, 10)
+    bar = _fit_bar(edges)
+    assert abs(2.0 * bar.half_width - 21.0) < 2.0
