@@ -148,12 +148,13 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
     plan, views, config = problem.plan, problem.views, problem.config
     outcome = (_solve_restarting(problem, initial, callback, start) if poses is None
                else _solve_from(problem, initial, poses, callback, start))
-    if not outcome.unclear_naming or (outcome.status != "measured" and outcome.why != Why.DEGENERATE):
+    if not outcome.unclear_naming or (outcome.status != "measured" and outcome.why not in _NAMING_REFUSALS):
         return outcome
     # The pins' names were left open by their sightings at the bone's poses. At the poses
     # solved they may be clear (a wrong naming never was on the simulated cases, where the
     # other naming met better); if not, the other naming decides by fit or by the bone
-    # (solver.pin_naming), also where this one's angles came out too uncertain to report.
+    # (solver.pin_naming), also where this one's angles came out too uncertain to report or
+    # its outlines did not fit.
     unclear = outcome.unclear_naming
     named = [swap_pins(v) if v.view_id in outcome.renamed else v for v in views]
     other_views = [swap_pins(v) if v.view_id in unclear else v for v in named]
@@ -183,6 +184,13 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
         chosen.status, chosen.reason, chosen.why = "not_measured", refusal, Why.PINS_INDISTINCT
         chosen.names_undecided = True
     return chosen
+
+
+# Refusals of a first naming that the other naming may not share: degenerate angles (the
+# wrong naming's pins cross the views' common plane) and models that do not fit (idealised
+# seed 2 at level 3: the first naming's pins 2.4-3.2 px off their contours, the other's
+# 0.5); which naming then stands is pin_naming.settle_naming's.
+_NAMING_REFUSALS = (Why.DEGENERATE, Why.GATE_FAILED)
 
 
 # Where a view shows the pins more than this much on each other, it cannot say where each

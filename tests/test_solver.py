@@ -831,6 +831,18 @@ def test_the_naming_with_both_pins_in_the_bone_decides_where_the_fit_cannot():
     assert settle_naming(degenerate, right, ["view2"], out_of_bone_mm=(-4.0, -4.4)) == (degenerate, None)
     assert settle_naming(degenerate, right, ["view2"]) == (degenerate, None)
     assert settle_naming(degenerate, refused, ["view2"], out_of_bone_mm=(22.5, -4.4)) == (degenerate, None)
+    # The first naming refused because it does not fit (idealised seed 2 at level 3): the
+    # other stands where the bone prefers it, it fits clearly better and it agrees no worse
+    # with the encoders; not where it strains them (scatter seed 16, 1.07 deg off).
+    misfit = Solved(1206.0, None)
+    misfit.residual_rms = {"E_rp": 0.7, "E_odo": 6.3}
+    fits, strained, barely = Solved(325.0, (0.3, 4.1)), Solved(325.0, (0.3, 4.1)), Solved(1150.0, (0.3, 4.1))
+    fits.residual_rms = barely.residual_rms = {"E_rp": 0.7, "E_odo": 3.2}
+    strained.residual_rms = {"E_rp": 0.7, "E_odo": 7.3}
+    assert settle_naming(misfit, fits, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (fits, None)
+    assert settle_naming(misfit, strained, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (misfit, None)
+    assert settle_naming(misfit, barely, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (misfit, None)
+    assert settle_naming(misfit, fits, ["view2"]) == (misfit, None)
     # The fit chose clearly, and its pins are out of the bone: no answer.
     chosen, refusal = settle_naming(wrong, Solved(1600.0, (1.0, 2.0)), ["view2"], False,
                                     out_of_bone_mm=(13.2, -4.0))
