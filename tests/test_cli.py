@@ -103,6 +103,22 @@ def test_accuracy_study_skips_a_case_the_simulator_cannot_build_and_goes_on(tmp_
     assert result["skipped"] == ["seed 249: simulated pin line misses the bone; cannot place pins"]
 
 
+def test_accuracy_study_of_a_mesh_without_its_landmarks_is_refused_naming_the_option(tmp_path, capsys):
+    """Without --landmarks the workers could not build the plan, and the study ended with
+    "a process in the process pool was terminated abruptly"; nothing is written now."""
+    out = tmp_path / "accuracy"
+    assert main(["bench", "accuracy", "--runs", "1", "--levels", "1", "--tibia",
+                 str(SHARED_DATA / "tibia-right.stl"), "--out", str(out)]) == 2
+    assert "needs --landmarks" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--runs", "1", "--levels", "1", "--landmarks", str(REAL_LANDMARKS),
+                 "--out", str(out)]) == 2
+    assert "give it too" in capsys.readouterr().err
+    assert main(["bench", "accuracy", "--runs", "1", "--levels", "1", "--tibia", str(tmp_path / "none.stl"),
+                 "--landmarks", str(REAL_LANDMARKS), "--out", str(out)]) == 2
+    assert "none.stl" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_only_the_program_leaves_its_objects_to_the_exit(tmp_path, monkeypatch):
     """The `slamtka` program freezes the collector's objects as it ends (its last collection
     would only cost time); a command run in-process, as here, must not."""

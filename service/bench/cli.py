@@ -168,6 +168,7 @@ def _summary(method: str, level: int, rows: list[dict]) -> dict:
 
 
 def run_accuracy(args: argparse.Namespace) -> int:
+    _check_model(args)
     args.out.mkdir(parents=True, exist_ok=True)
     # Every method sees the same simulated cases (same seeds) at each level.
     jobs = [(method, level, args.seed + 1000 * level + run, args.noise_px, args.segmentation_mm,
@@ -198,6 +199,19 @@ def run_accuracy(args: argparse.Namespace) -> int:
     for r in errors:
         print(f"ERROR {r['method']} level {r['level']} seed {r['seed']}: {r['reason']}")
     return 1 if errors else 0
+
+
+def _check_model(args: argparse.Namespace) -> None:
+    """Refuse, naming the option or file, a model the workers could not build: their
+    initialiser's error would only end the pool ("a process ... terminated abruptly")."""
+    if args.tibia is None:
+        if args.fibula is not None or args.landmarks is not None:
+            raise ValueError("--fibula and --landmarks describe a --tibia mesh; give it too")
+        return
+    if args.landmarks is None:
+        raise ValueError(f"--tibia {args.tibia} needs --landmarks: the tibia's landmarks JSON "
+                         "(its knee and ankle centres, as tests/data/knee-smith2019-landmarks.json)")
+    Plan.from_meshes(args.tibia, args.fibula, args.landmarks)
 
 
 def _methods(text: str) -> list[str]:
