@@ -161,13 +161,13 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
     fits clearly better and no worse to the encoders: the encoders witness the views
     independently of the names (scatter seed 16: the other naming, preferred by the bone
     and fitting better by 183, strained the encoders from 5.1 to 7.3 sigma and was measured
-    1.07 deg off; idealised seed 2 at level 3: better by 700, 6.3 to 3.2 sigma, right)."""
+    1.07 deg off; idealised seed 2 at level 3: better by 700, 6.3 to 3.2 sigma, right).
+    Solved without the encoders, such a first naming stands: no witness is left."""
     in_bone = _bone_prefers(out_of_bone_mm)
     if first.status != "measured":
         gives_way = in_bone == 1 and second.status == "measured"
         if first.why == _ANSWER_GATE_FAILED:
-            gives_way = (gives_way and cost_gap(first, second) <= -NAMING_MIN_COST_GAP
-                         and second.residual_rms.get("E_odo", 0.0) <= first.residual_rms.get("E_odo", 0.0))
+            gives_way = gives_way and _fits_clearly_better_and_as_witnessed(first, second)
         return (second if gives_way else first), None
     chosen, refusal = _settle_by_fit(first, second, views, sightings_prefer_second)
     if in_bone is None or out_of_bone_mm is None:
@@ -180,6 +180,15 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
     return chosen, (f"the two pins cannot be told apart in view {', '.join(views)}: the naming "
                     f"that fits puts a pin {out_of_bone_mm[1 - in_bone]:.0f} mm out of the "
                     "bone, the other has both pins in it; take a view from another angle")
+
+
+def _fits_clearly_better_and_as_witnessed(first: _Solved, second: _Solved) -> bool:
+    """Whether ``second`` fits better than ``first`` by the naming margin, with views the
+    encoders' motion contradicts no more (both solved held to it)."""
+    if "E_odo" not in first.residual_rms or "E_odo" not in second.residual_rms:
+        return False
+    return (cost_gap(first, second) <= -NAMING_MIN_COST_GAP
+            and second.residual_rms["E_odo"] <= first.residual_rms["E_odo"])
 
 
 def _settle_by_fit(first: Solved, second: Solved, views: list[str],

@@ -843,6 +843,8 @@ def test_the_naming_with_both_pins_in_the_bone_decides_where_the_fit_cannot():
     assert settle_naming(misfit, strained, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (misfit, None)
     assert settle_naming(misfit, barely, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (misfit, None)
     assert settle_naming(misfit, fits, ["view2"]) == (misfit, None)
+    misfit.residual_rms = fits.residual_rms = {"E_rp": 0.7}  # solved without the encoders
+    assert settle_naming(misfit, fits, ["view2"], out_of_bone_mm=(10.3, -7.9)) == (misfit, None)
     # The fit chose clearly, and its pins are out of the bone: no answer.
     chosen, refusal = settle_naming(wrong, Solved(1600.0, (1.0, 2.0)), ["view2"], False,
                                     out_of_bone_mm=(13.2, -4.0))
