@@ -182,6 +182,22 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
                     "bone, the other has both pins in it; take a view from another angle")
 
 
+# Where the fit and the pins' sightings disagree about the names, the encoders' motion
+# settles it if it clearly sides with the fit: the views of the naming the fit chose
+# strayed from it at most this share of the other's E_odo RMS. Of 204 naming decisions of
+# fourteen realism scenes at level 1 (main ec69aae), 13 set fit against sightings: in the
+# 11 where the fit was right its naming's share was 0.46-0.78, where it was wrong
+# (scatter seed 17, 17 deg off) 0.87, and once (retractors seed 24, right) 1.06.
+_ENCODERS_CONFIRM_SHARE = 0.6
+
+
+def _encoders_confirm(chosen: _Solved, other: _Solved) -> bool:
+    """Whether the encoders' motion clearly prefers ``chosen``'s views to ``other``'s."""
+    if "E_odo" not in chosen.residual_rms or "E_odo" not in other.residual_rms:
+        return False
+    return chosen.residual_rms["E_odo"] <= _ENCODERS_CONFIRM_SHARE * other.residual_rms["E_odo"]
+
+
 def _fits_clearly_better_and_as_witnessed(first: _Solved, second: _Solved) -> bool:
     """Whether ``second`` fits better than ``first`` by the naming margin, with views the
     encoders' motion contradicts no more (both solved held to it)."""
@@ -195,8 +211,9 @@ def _settle_by_fit(first: Solved, second: Solved, views: list[str],
                    sightings_prefer_second: bool | None = None) -> tuple[Solved, str | None]:
     """:func:`settle_naming` by the fit and the pins' sightings alone. A naming
     that fits clearly better wins only if the pins' sightings (at the first solve's poses,
-    ``sightings_prefer_second``) do not favour the other: on extracted contours the fit
-    alone chose wrong names (two realism cases measured 17 and 25 deg off).
+    ``sightings_prefer_second``) do not favour the other, or the encoders' motion clearly
+    does (:func:`_encoders_confirm`): on extracted contours the fit alone chose wrong names
+    (two realism cases measured 17 and 25 deg off).
 
     A second naming that lost its way, or whose geometry is degenerate, leaves the first
     standing; one that fits about as well or better but failed an answer gate does not:
@@ -219,6 +236,8 @@ def _settle_by_fit(first: Solved, second: Solved, views: list[str],
     better = first if gap >= 0 else second
     if abs(gap) >= NAMING_MIN_COST_GAP:
         if sightings_prefer_second is None or sightings_prefer_second == (better is second):
+            return better, None
+        if _encoders_confirm(better, second if better is first else first):
             return better, None
         return better, (f"the two pins cannot be told apart in view {', '.join(views)}: the "
                         f"fit (final cost {cost_first:.0f} against {cost_second:.0f}) and "
