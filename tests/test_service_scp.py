@@ -45,6 +45,15 @@ def _events(tmp_path, name):
     return [e for e in read_audit(tmp_path / "audit.jsonl") if e["event"] == name]
 
 
+def _events_once(tmp_path, name, count, timeout_s=10.0):
+    """The events ``name`` once ``count`` are recorded: the SCP audits a rejection on its
+    association's thread, which may run on after the peer has read the rejection."""
+    deadline = time.monotonic() + timeout_s
+    while len(events := _events(tmp_path, name)) < count and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return events
+
+
 def _client(title="CARM1"):
     ae = AE(ae_title=title)
     ae.add_requested_context(Verification)
@@ -85,7 +94,7 @@ def test_refused_calling_and_called_ae_titles(scp):
                                   capture_output=True, text=True, timeout=30)
     assert wrong_caller.returncode != 0 and "Calling AE Title Not Recognized" in wrong_caller.stderr
     assert wrong_called.returncode != 0 and "Called AE Title Not Recognized" in wrong_called.stderr
-    reasons = [(e["calling_ae"], e["reason"]) for e in _events(tmp_path, "association_rejected")]
+    reasons = [(e["calling_ae"], e["reason"]) for e in _events_once(tmp_path, "association_rejected", 2)]
     assert reasons == [("INTRUDER", "calling AE title not allowed"),
                        ("CARM1", "called AE title 'OTHER' is not ours")]
 
