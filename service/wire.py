@@ -155,15 +155,19 @@ class GuardedSocket(AssociationSocket):
         return body
 
     def _violation(self, reason: str, reply: bytes = _A_ABORT) -> _Violation:
-        try:
-            if self.socket is not None:  # None once pynetdicom has closed the connection
-                self.socket.sendall(reply)
-        except OSError:
-            pass
-        self.release()  # this association is over: its slot is free for the next one now
+        # Audited before the peer is answered: a peer that has read its refusal finds it
+        # on record. Answered and released even if the audit cannot be written.
         event = "association_rejected" if reply[0] == 0x03 else "association_aborted"
-        self.guard.limits.audit(event, reason=reason, **self.peer)
         log.warning("%s from %s: %s", event, self.peer["peer"], reason)
+        try:
+            self.guard.limits.audit(event, reason=reason, **self.peer)
+        finally:
+            try:
+                if self.socket is not None:  # None once pynetdicom has closed the connection
+                    self.socket.sendall(reply)
+            except OSError:
+                pass
+            self.release()  # this association is over: its slot is free for the next one now
         return _Violation(reason)
 
     def _check_header(self, pdu_type: int, length: int) -> None:

@@ -198,7 +198,7 @@ def test_associations_beyond_the_limit_are_refused_and_audited(tmp_path):
         second = _client().associate("127.0.0.1", receiver.port, ae_title="SLAMTKA")
         assert first.is_established and second.is_rejected
         first.release()
-        refused = _events(tmp_path, "association_rejected")
+        refused = _events_once(tmp_path, "association_rejected", 1)
         assert len(refused) == 1 and refused[0]["peer"] == "127.0.0.1"
         assert refused[0]["reason"] == "too many associations (held by 127.0.0.1 x1)"
     finally:
