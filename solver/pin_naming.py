@@ -191,20 +191,18 @@ def settle_naming(first: Solved, second: Solved, views: list[str],
 _ENCODERS_CONFIRM_SHARE = 0.6
 
 
-def _encoders_confirm(chosen: _Solved, other: _Solved) -> bool:
-    """Whether the encoders' motion clearly prefers ``chosen``'s views to ``other``'s."""
+def _encoders_confirm(chosen: _Solved, other: _Solved, share: float = _ENCODERS_CONFIRM_SHARE) -> bool:
+    """Whether both were solved held to the encoders' motion and ``chosen``'s views stray
+    from it at most ``share`` of ``other``'s (E_odo RMS): 1 for no more than the other."""
     if "E_odo" not in chosen.residual_rms or "E_odo" not in other.residual_rms:
         return False
-    return chosen.residual_rms["E_odo"] <= _ENCODERS_CONFIRM_SHARE * other.residual_rms["E_odo"]
+    return chosen.residual_rms["E_odo"] <= share * other.residual_rms["E_odo"]
 
 
 def _fits_clearly_better_and_as_witnessed(first: _Solved, second: _Solved) -> bool:
     """Whether ``second`` fits better than ``first`` by the naming margin, with views the
     encoders' motion contradicts no more (both solved held to it)."""
-    if "E_odo" not in first.residual_rms or "E_odo" not in second.residual_rms:
-        return False
-    return (cost_gap(first, second) <= -NAMING_MIN_COST_GAP
-            and second.residual_rms["E_odo"] <= first.residual_rms["E_odo"])
+    return cost_gap(first, second) <= -NAMING_MIN_COST_GAP and _encoders_confirm(second, first, 1.0)
 
 
 def _settle_by_fit(first: Solved, second: Solved, views: list[str],
