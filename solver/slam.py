@@ -52,9 +52,16 @@ from slamtka.solver.stages import StageRunner
 from slamtka.solver.uncertainty import angle_uncertainty, pin_covariance
 from slamtka.solver.variables import PoseKey
 
-__all__ = ["METHODS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
+__all__ = ["METHODS", "SOLVE_STARTS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
 
 log = logging.getLogger("slamtka.solver")
+
+
+# Where a final solve started (the result's "start", which the published schema lists):
+# the encoders' guess, a global search of the patient set-up after the first solve went
+# astray, or one view's solved pose with the others carried from it by the encoders'
+# motion after the solve disagreed with them.
+SOLVE_STARTS = ("encoders", "global set-up search", "carried by the encoders")
 
 
 @dataclass
@@ -78,7 +85,7 @@ class SolveOutcome:
     # Of those, the ones that kept an edge point in the final energy (the rest strayed off
     # the bone); empty for methods without edge points and for solves never run.
     edge_point_counts: dict[str, int] = field(default_factory=dict)
-    initialisation: str = "encoders"  # or "global set-up search" when the first solve went astray
+    initialisation: str = "encoders"  # where the final solve started: one of SOLVE_STARTS
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
     bone_edges_sought: bool = False  # the bone contours were sought near the model's outline
     why: Why | None = None  # the kind of refusal, when not measured (a stable code)
@@ -236,7 +243,7 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
         searched = named_poses([T @ correction for T in initial.T_cam_tibia],
                                initial.T_tibia_pin)
         outcome = _solve_from(problem, initial, searched, callback, start)
-        outcome.initialisation = "global set-up search"
+        outcome.initialisation = SOLVE_STARTS[1]
         iterations += outcome.iterations
         if best.why is Why.NOT_CONVERGED:
             best = outcome
@@ -244,8 +251,45 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
         outcome = _carried_by_the_encoders(problem, initial, outcome, callback, start)
         iterations += outcome.iterations  # of every restart it ran
     chosen = outcome if outcome.status == "measured" else best
+    if (chosen.status != "measured" and chosen.why in _REFIT_REFUSALS and not problem.edges_sought
+            and any(view.bone_edge_search for view in problem.views)):
+        refit = _refit_on_sought_edges(problem, initial, chosen, callback, start)
+        iterations += refit.iterations
+        chosen = refit if refit.status == "measured" else chosen
     chosen.iterations = iterations
     return chosen
+
+
+# Refusals of a solve that found the bone but whose contours may hold edges not its own:
+# the posed models do not fit them, or the views they pull lie off the encoders' motion.
+_REFIT_REFUSALS = (Why.GATE_FAILED, Why.ENCODERS_DISAGREE)
+
+
+def _refit_on_sought_edges(problem: JointProblem, initial: InitialGuess, refused: SolveOutcome,
+                           callback: Callable[[str, IterationInfo], None] | None,
+                           start: float) -> SolveOutcome:
+    """Solves on the bone's edges sought again near the outline that ``refused`` reached,
+    ever closer (``ScheduleConfig.refit_edge_reach_px``), each from the last one's views;
+    the last, with the iterations of all.
+
+    The first contour of a frame at low dose, under scatter or processed by the C-arm holds
+    edges beside the outline (a fibula's, a plateau's rim, skin lines) and misses parts of
+    it; fitted to them, a solve can end a few pixels off (scatter seed 29: 9 sigma from the
+    encoders; dose seed 8: its bone 2.6 px off). Near a solved outline the frame's own
+    edges are the bone's (both measured within 0.15 deg), and the gates judge the new fit
+    as any other: where the sought edges cover too little of the outline, it is refused."""
+    outcome, iterations = refused, 0
+    for reach_px in problem.config.schedule.refit_edge_reach_px:
+        if outcome.state is None:
+            break
+        sought = problem.with_bone_edges_sought(outcome.state.poses, reach_px)
+        outcome = _solve_from(sought, initial, named_poses(outcome.T_cam_tibia, initial.T_tibia_pin),
+                              callback, start)
+        outcome.initialisation = refused.initialisation
+        iterations += outcome.iterations
+    outcome.iterations = iterations
+    log.info("edges sought again near the refused solve's outline: %s", outcome.status)
+    return outcome
 
 
 def _carried_by_the_encoders(problem: JointProblem, initial: InitialGuess, astray: SolveOutcome,
@@ -262,7 +306,7 @@ def _carried_by_the_encoders(problem: JointProblem, initial: InitialGuess, astra
     for k, found in enumerate(astray.T_cam_tibia):
         carried = [T @ initial.T_cam_tibia[k].inverse() @ found for T in initial.T_cam_tibia]
         outcome = _solve_from(problem, initial, named_poses(carried, initial.T_tibia_pin), callback, start)
-        outcome.initialisation = "carried by the encoders"
+        outcome.initialisation = SOLVE_STARTS[2]
         iterations += outcome.iterations
         if outcome.status == "measured":
             break

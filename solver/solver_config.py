@@ -60,6 +60,11 @@ class ScheduleConfig:
     # A bone stage off its contour seeks the bone's edges again near the model's outline,
     # from this far out to this close (px), fitting the views to them each time.
     bone_edge_reach_px: tuple[float, ...] = (16.0, 8.0, 4.0)
+    # A solve that found the bone but failed a fit gate seeks the bone's edges again near
+    # its solved outline, this far and then this close (px), and is solved again each time.
+    # Not from 16 px: interior edges that near (a fibula's, a plateau's rim) measured
+    # scatter seed 29 1.1 deg off in STR.
+    refit_edge_reach_px: tuple[float, ...] = (8.0, 4.0)
     coarse_all: LMOptions = LMOptions(max_iterations=10, relative_tolerance=1e-3)
     fine: LMOptions = LMOptions(max_iterations=60, relative_tolerance=5e-3, step_tolerance=1e-3,
                                 min_lambda=1e-3)
