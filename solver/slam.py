@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -52,16 +53,20 @@ from slamtka.solver.stages import StageRunner
 from slamtka.solver.uncertainty import angle_uncertainty, pin_covariance
 from slamtka.solver.variables import PoseKey
 
-__all__ = ["METHODS", "SOLVE_STARTS", "InitialGuess", "SolverConfig", "SolveOutcome", "solve_joint"]
+__all__ = ["METHODS", "InitialGuess", "SolveStart", "SolverConfig", "SolveOutcome", "solve_joint"]
 
 log = logging.getLogger("slamtka.solver")
 
 
-# Where a final solve started (the result's "start", which the published schema lists):
-# the encoders' guess, a global search of the patient set-up after the first solve went
-# astray, or one view's solved pose with the others carried from it by the encoders'
-# motion after the solve disagreed with them.
-SOLVE_STARTS = ("encoders", "global set-up search", "carried by the encoders")
+class SolveStart(StrEnum):
+    """Where a final solve started (the result's "start", which the published schema
+    lists): the encoders' guess, a global search of the patient set-up after the first
+    solve went astray, or one view's solved pose with the others carried from it by the
+    encoders' motion after the solve disagreed with them."""
+
+    ENCODERS = "encoders"
+    SETUP_SEARCH = "global set-up search"
+    CARRIED = "carried by the encoders"
 
 
 @dataclass
@@ -85,7 +90,7 @@ class SolveOutcome:
     # Of those, the ones that kept an edge point in the final energy (the rest strayed off
     # the bone); empty for methods without edge points and for solves never run.
     edge_point_counts: dict[str, int] = field(default_factory=dict)
-    initialisation: str = "encoders"  # where the final solve started: one of SOLVE_STARTS
+    initialisation: str = SolveStart.ENCODERS
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
     bone_edges_sought: bool = False  # the bone contours were sought near the model's outline
     why: Why | None = None  # the kind of refusal, when not measured (a stable code)
@@ -243,7 +248,7 @@ def _solve_restarting(problem: JointProblem, initial: InitialGuess,
         searched = named_poses([T @ correction for T in initial.T_cam_tibia],
                                initial.T_tibia_pin)
         outcome = _solve_from(problem, initial, searched, callback, start)
-        outcome.initialisation = SOLVE_STARTS[1]
+        outcome.initialisation = SolveStart.SETUP_SEARCH
         iterations += outcome.iterations
         if best.why is Why.NOT_CONVERGED:
             best = outcome
@@ -280,8 +285,7 @@ def _refit_on_sought_edges(problem: JointProblem, initial: InitialGuess, refused
     as any other: where the sought edges cover too little of the outline, it is refused."""
     outcome, iterations = refused, 0
     for reach_px in problem.config.schedule.refit_edge_reach_px:
-        if outcome.state is None:
-            break
+        assert outcome.state is not None  # a fit gate's refusal and every solve keep theirs
         sought = problem.with_bone_edges_sought(outcome.state.poses, reach_px)
         outcome = _solve_from(sought, initial, named_poses(outcome.T_cam_tibia, initial.T_tibia_pin),
                               callback, start)
@@ -306,7 +310,7 @@ def _carried_by_the_encoders(problem: JointProblem, initial: InitialGuess, astra
     for k, found in enumerate(astray.T_cam_tibia):
         carried = [T @ initial.T_cam_tibia[k].inverse() @ found for T in initial.T_cam_tibia]
         outcome = _solve_from(problem, initial, named_poses(carried, initial.T_tibia_pin), callback, start)
-        outcome.initialisation = SOLVE_STARTS[2]
+        outcome.initialisation = SolveStart.CARRIED
         iterations += outcome.iterations
         if outcome.status == "measured":
             break

@@ -38,7 +38,7 @@ from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.gates import Why
 from slamtka.solver.measurement import angle_covariance, fit_resection_plane, pin_axis_points
 from slamtka.solver.plan import Target
-from slamtka.solver.slam import SOLVE_STARTS, InitialGuess, SolveOutcome
+from slamtka.solver.slam import InitialGuess, SolveOutcome, SolveStart
 
 _WHEN = dt.datetime(2026, 3, 4, 10, 11, 12, 345000, tzinfo=dt.UTC)
 needs_dicom3tools = pytest.mark.skipif(shutil.which("dciodvfy") is None or
@@ -146,9 +146,9 @@ def test_the_schema_publishes_every_refusal_code():
 def test_the_schema_publishes_every_start_a_solve_can_have(truth_case):
     """A solve restarted from a view the encoders carried was written as its start, which
     the schema did not list: such a measured result failed its own validation."""
-    assert sorted(result_schema()["properties"]["solver"]["properties"]["start"]["enum"]) == sorted(SOLVE_STARTS)
+    assert sorted(result_schema()["properties"]["solver"]["properties"]["start"]["enum"]) == sorted(SolveStart)
     plan, case, outcome = truth_case
-    for start in SOLVE_STARTS:
+    for start in SolveStart:
         validate_result(_document(plan, case, dataclasses.replace(outcome, initialisation=start)))
 
 
