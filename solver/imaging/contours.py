@@ -151,6 +151,9 @@ class ExtractedContours:
     # contours not extracted here).
     bone_edge_search: BoneEdgeSearch | None = None
     visible_cell_px: int = VISIBLE_CELL_PX  # raw pixels a side of a cell of bone_visible
+    # Where a pin's edge would have been kept (the exposed field, clear of broad metal's
+    # rim), in cells as ``bone_visible``; None for contours not extracted here.
+    pins_visible: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
@@ -161,10 +164,10 @@ class ExtractedContours:
         """The solver's view of these contours, undistorted (``undistort`` and ``distort``
         map raw to ideal pixels and back), with what the frame hides and why a pin has no
         contour."""
-        visible = None
-        if self.bone_visible is not None:
-            visible = VisibleRegion.from_raw(self.bone_visible, self.visible_cell_px,
-                                             (camera.width, camera.height), distort)
+        visible, pin_field = (
+            None if cells is None else VisibleRegion.from_raw(cells, self.visible_cell_px,
+                                                              (camera.width, camera.height), distort)
+            for cells in (self.bone_visible, self.pins_visible))
         contours = {label: undistort(points) if len(points) else points
                     for label, points in self.as_dict().items()}
         # Pins seen one behind the other were given the one bar's edges each: pooled, the fit
@@ -175,7 +178,7 @@ class ExtractedContours:
             view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
                 self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True,
-            pin_edges=contours["pin1"] if behind else None)
+            pin_edges=contours["pin1"] if behind else None, pin_field=pin_field)
 
 
 # -- pins ----------------------------------------------------------------------------------
@@ -1277,7 +1280,7 @@ def _on_frame_pixels(found: ExtractedContours, scale: float) -> ExtractedContour
     edge_search = None if found.bone_edge_search is None else replace(found.bone_edge_search, scale=scale)
     bone, pin1, pin2 = (to_frame_pixels(points, scale) for points in (found.bone, found.pin1, found.pin2))
     return ExtractedContours(bone, pin1, pin2, found.diagnostics | {"working_scale": scale}, found.bone_visible,
-                             edge_search, int(round(found.visible_cell_px * scale)))
+                             edge_search, int(round(found.visible_cell_px * scale)), found.pins_visible)
 
 
 def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:
@@ -1384,7 +1387,8 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     return ExtractedContours(bone, pin1, pin2, diagnostics,
                              bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy(),
                              BoneEdgeSearch.of_frame(smooth, bone_edges_visible, config.min_edge_strength,
-                                                     config.bone_edge_offset_px))
+                                                     config.bone_edge_offset_px),
+                             pins_visible=(field & pins_ok)[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX])
 
 
 def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:
