@@ -412,6 +412,17 @@ def test_pins_in_one_bar_too_short_for_them_are_refused_saying_so():
             "lie one behind the other)") in result["reason"]
 
 
+def test_pins_exactly_in_line_in_a_lateral_view_are_refused_saying_so():
+    """Surgeon's views seed 19, view 2 (lateral, 68 deg): the pins lie in line, one behind
+    the other, one bar a pin wide running out of the field. It is no pair, and halved it
+    makes no two pins as long as a pin can be; the refusal says what was seen, not that no
+    steel bar of a pin's shape was there."""
+    result = realism_case(("phantom", "views", 19, (1,), str(SHARED_DATA)))["levels"][1]
+    assert result["status"] == "refused"
+    assert ("view view2: pin1 not told from the other pin (one bar a pin wide: the pins lie in "
+            "line, one behind the other, or the other is hidden)") in result["reason"]
+
+
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_a_dark_band_beside_a_pin_is_not_taken_for_its_edge(phantom_plan, scene):
     """Seed 0 of the processing scene, view 1: the sharpened plateau leaves a dark band

@@ -4,14 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamtka.solver.imaging.contours import ContourConfig, _PinWidths, _split_one
+from slamtka.solver.imaging.contours import (
+    ONE_BAR_ONE_WIDE,
+    ONE_BAR_TWO_WIDE,
+    ContourConfig,
+    _PinWidths,
+    _split_one,
+)
 from slamtka.solver.imaging.edges import outline_with_normals
 
 _EXPECTED_WIDTH_PX = 20.0
 _LEAST_LENGTH_PX = 250.0  # 0.4 of the ~600 px the initial pose foresees: longer than half the bar
 
 
-def _split_bar(width_px: int, length_px: int) -> tuple | bool:
+def _split_bar(width_px: int, length_px: int) -> tuple | str | None:
     """What the split of one horizontal bar's shadow (no steps along its sides) gives."""
     labels = np.zeros((200, 700), np.int32)
     top = 100 - width_px // 2
@@ -36,14 +42,21 @@ def test_a_bar_as_wide_as_two_pins_one_behind_the_other_is_both_pins():
 
 def test_a_bar_one_pin_wide_is_not_taken_for_both_pins():
     """The same bar a pin wide is one pin, its partner missed: fitted as both pins, each
-    pin's line would lie in that bar's plane and the resection plane would be wrong."""
-    assert _split_bar(20, 450) is False
+    pin's line would lie in that bar's plane and the resection plane would be wrong. That
+    it was seen is kept for the refusal's words (the pins exactly one behind the other, or
+    one hidden)."""
+    assert _split_bar(20, 450) == ONE_BAR_ONE_WIDE
 
 
 def test_a_bar_too_short_for_the_pins_says_they_lie_one_behind_the_other():
     """A bar of two pins' width but shorter than a pin can be is not taken; that it was
     seen is kept for the refusal's words."""
-    assert _split_bar(28, 200) is True
+    assert _split_bar(28, 200) == ONE_BAR_TWO_WIDE
+
+
+def test_a_bar_one_pin_wide_but_shorter_than_a_pin_says_nothing_of_the_pins():
+    """A pin-wide bar under a pin's least length is no evidence of both pins in it."""
+    assert _split_bar(20, 200) is None
 
 
 def test_a_bar_wider_only_where_pins_in_line_overlap_is_not_both_pins():

@@ -675,7 +675,7 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
 
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
                widths: _PinWidths, least_length: float, config: ContourConfig
-               ) -> tuple[list[_Bar], str, np.ndarray] | bool:
+               ) -> tuple[list[_Bar], str, np.ndarray] | str | None:
     """When no two shadows are the pins, the one that holds both: of the candidates, largest
     first, the first that splits into two bars no wider than a pin on average (a strip of a
     retractor blade does not; a split's bars come out uneven where pin heads add steps to
@@ -692,12 +692,15 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     (:meth:`JointProblem.with_pin_edges_shared`). Pins in line, one overlapping the other's
     end, are wider only where they overlap (the real tibia's operating-room seed 26 at
     level 3, between two blades: 44, 34 and 16 px; taken for both pins it was measured 5 deg
-    off). Where none is taken, False, or True if a bar was of that width on average (for the
-    refusal's words: the pins overlap there)."""
+    off). Where none is taken, what was seen, for the refusal's words: ``ONE_BAR_TWO_WIDE``
+    where a bar was of that width on average (the pins overlap there), else
+    ``ONE_BAR_ONE_WIDE`` where a straight bar one pin wide was as long as a pin (the pins
+    exactly one behind the other, or one hidden: surgeon's views seed 19, view 2, a lateral
+    view), else None."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
     behind: tuple[list[_Bar], str, np.ndarray] | None = None
-    in_line = False
+    seen: str | None = None
     for shadow in shadows:
         own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         mine = own[at[:, 1], at[:, 0]]
@@ -708,13 +711,23 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:
             return bars, overlap, edges[mine]
         whole = _fit_bar(edges[mine])
-        if behind is None and widths.two_behind(_edge_width(whole, edges[mine])):
-            in_line = True
+        whole_width = _edge_width(whole, edges[mine])
+        if (seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length
+                and _side_wander(whole, np.argwhere(labels == shadow)[:, ::-1].astype(float)) <= _PIN_SIDE_WANDER_PX):
+            seen = ONE_BAR_ONE_WIDE
+        if behind is None and widths.two_behind(whole_width):
+            seen = ONE_BAR_TWO_WIDE
             thirds = _widths_along(whole, edges[mine])
             if (2.0 * whole.half_length >= least_length and all(widths.two_behind(w) for w in thirds)
                     and thirds.max() <= _BEHIND_EVENNESS * thirds.min()):
                 behind = [whole, whole], "behind", edges[mine]
-    return behind if behind is not None else in_line
+    return behind if behind is not None else seen
+
+
+# What one bar that is not taken for the pins says of them (ExtractedContours.diagnostics'
+# "pins_one_bar", for the refusal's words).
+ONE_BAR_TWO_WIDE = "as wide as both pins"
+ONE_BAR_ONE_WIDE = "one pin wide"
 
 
 # Two pins one behind the other are as wide all along: the widest third of their bar's
@@ -926,7 +939,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     pair = _parallel_pair(fitted, widths, expected, least_length)
     split = None if pair is not None else _split_one(labels, shadows, edges, normals, widths,
                                                       least_length, config)
-    if isinstance(split, bool) and least_length > 0:
+    if not isinstance(split, tuple) and least_length > 0:
         # The initial pose may foresee a far longer shadow than a pin seen nearly along its
         # axis casts (at level 3, 434-589 px for 133-216: idealised seeds 0, 2, 12, 23, 28):
         # two separate parallel bars of a pin's width are then the pins whatever their
@@ -938,7 +951,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
         bars, overlap, edges = split
     else:
         empty = np.zeros((0, 2))
-        return [empty, empty], mask, {"pins_found": 0, "pins_in_line": bool(split)}
+        return [empty, empty], mask, {"pins_found": 0, "pins_one_bar": split}
     bars = _order_pins(bars, config, expected)
     distance = np.stack([np.abs(b.distance(edges)) for b in bars])
     if overlap == "apart":
@@ -1137,11 +1150,14 @@ _PROCESSED_RIM_HALO_PX = 40.0
 _HIDDEN_NEAR_PX = 60.0  # an expected pin centre this close to opaque metal: hidden by it
 
 
-def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray, in_line: bool) -> str:
+def _why_missing(index: int, expected: np.ndarray | None, broad: np.ndarray, one_bar: str | None) -> str:
     """Why pin ``index`` (0, 1) has no edges in a frame, in words for the refusal."""
-    if in_line:
+    if one_bar == ONE_BAR_TWO_WIDE:
         return ("not told from the other pin (one bar as wide as both: the pins lie one "
                 "behind the other)")
+    if one_bar == ONE_BAR_ONE_WIDE:
+        return ("not told from the other pin (one bar a pin wide: the pins lie in line, one "
+                "behind the other, or the other is hidden)")
     if broad.any():
         if expected is None:
             return "not found (hidden by metal?)"
@@ -1370,7 +1386,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     bone_edges_visible = bone_visible & (to_air > 3.0)
     bone = kept_in(bone, bone_edges_visible)
     pin1, pin2 = kept_in(pin1, pins_ok), kept_in(pin2, pins_ok)
-    missing = {label: _why_missing(k, expected_pins, broad, pin_info.get("pins_in_line", False))
+    missing = {label: _why_missing(k, expected_pins, broad, pin_info.get("pins_one_bar"))
                for k, (label, points) in enumerate((("pin1", pin1), ("pin2", pin2)))
                if len(points) < _MIN_PIN_EDGES}
     diagnostics = {
