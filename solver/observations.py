@@ -186,9 +186,8 @@ class ViewObservation:
     # other's shadow). None: the extraction's names and contours stand.
     pin_edges: np.ndarray | None = None
     pins_visible: dict[str, VisibleRegion] | None = None
-    # Where a pin's edge could be seen at all: inside the exposed field, clear of broad
-    # metal's rim (None: wherever the camera reaches). A pin running out of the field has
-    # no contour beyond it to lie on.
+    # Where a pin's edge could be seen at all: inside the exposed field (None: wherever the
+    # camera reaches). A pin running out of the field has no contour beyond it to lie on.
     pin_field: VisibleRegion | None = None
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 

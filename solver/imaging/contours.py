@@ -151,8 +151,8 @@ class ExtractedContours:
     # contours not extracted here).
     bone_edge_search: BoneEdgeSearch | None = None
     visible_cell_px: int = VISIBLE_CELL_PX  # raw pixels a side of a cell of bone_visible
-    # Where a pin's edge would have been kept (the exposed field, clear of broad metal's
-    # rim), in cells as ``bone_visible``; None for contours not extracted here.
+    # Where a pin's edge could be seen (the exposed field), in cells as ``bone_visible``;
+    # None for contours not extracted here.
     pins_visible: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, np.ndarray]:
@@ -1376,6 +1376,10 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
         if radius is None:
             rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
+        # A pin's edge can be seen wherever the field is exposed. Its edges beside broad
+        # metal's rim are left out (they may be the metal's), yet its outline there is still
+        # charged: left uncharged, a pin pose 9 deg off passed every gate (retractors seed 24).
+        pins_seen = field & rim_ok
         pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
         rim_ok &= _distance_to(broad | shutters) > margin
         (pin1, pin2), pins, pin_info = found_pins.result()
@@ -1404,7 +1408,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
                              bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy(),
                              BoneEdgeSearch.of_frame(smooth, bone_edges_visible, config.min_edge_strength,
                                                      config.bone_edge_offset_px),
-                             pins_visible=(field & pins_ok)[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX])
+                             pins_visible=pins_seen[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX])
 
 
 def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:
