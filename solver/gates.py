@@ -16,10 +16,11 @@ from enum import StrEnum
 
 from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagnostics
 from slamtka.solver.observations import PIN_LABELS
+from slamtka.solver.pin_naming import PIN_OUT_OF_BONE_MM
 from slamtka.solver.solver_config import GateLimits
 
 __all__ = ["Why", "angle_uncertainty", "contour_misfit", "edge_on_plane_confirmed", "hidden_outline",
-           "input_refusal", "odometry_misfit", "outline_misfit", "pin_divergence", "pins_in_line",
+           "input_refusal", "odometry_misfit", "outline_misfit", "pin_divergence", "pin_out_of_bone", "pins_in_line",
            "pins_overlap", "shared_bar_unexplained", "sought_edges_missing", "view_separation"]
 
 
@@ -210,6 +211,17 @@ def odometry_misfit(d: SolveDiagnostics, limits: GateLimits) -> str | None:
         return None
     return (f"the views disagree with the encoders' C-arm motion (E_odo residual "
             f"{odo:.1f} sigma RMS > {limit_sigma:g}): a local minimum")
+
+
+def pin_out_of_bone(out_of_bone_mm: float | None) -> str | None:
+    """Why the solved pins cannot be the ones drilled into the tibia, or None: the deeper
+    end of one lies clearly outside the bone (``out_of_bone_mm``, None where the views
+    cannot say how deep the pins are)."""
+    if out_of_bone_mm is None or out_of_bone_mm < PIN_OUT_OF_BONE_MM:
+        return None
+    return (f"a solved pin does not reach into the tibia (its deeper end {out_of_bone_mm:.0f} mm "
+            f"outside the bone >= {PIN_OUT_OF_BONE_MM:g} mm): the pins are drilled into it, so a "
+            "pin's pose is wrong")
 
 
 def view_separation(d: SolveDiagnostics, limits: GateLimits) -> str | None:

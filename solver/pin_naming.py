@@ -54,7 +54,7 @@ NAMING_PLANE_TOLERANCE_DEG = 0.5
 # inside on the simulated cases), and clearly out of it beyond the second figure (the wrong
 # naming's farthest pin: 2.8-22 mm out).
 _PIN_IN_BONE_MM = 1.0
-_PIN_OUT_OF_BONE_MM = 4.0
+PIN_OUT_OF_BONE_MM = 4.0
 
 
 class _Solved(Protocol):
@@ -137,7 +137,7 @@ def _bone_prefers(out_of_bone_mm: tuple[float, float] | None) -> int | None:
     if out_of_bone_mm is None:
         return None
     for k in (0, 1):
-        if out_of_bone_mm[k] <= _PIN_IN_BONE_MM and out_of_bone_mm[1 - k] >= _PIN_OUT_OF_BONE_MM:
+        if out_of_bone_mm[k] <= _PIN_IN_BONE_MM and out_of_bone_mm[1 - k] >= PIN_OUT_OF_BONE_MM:
             return k
     return None
 

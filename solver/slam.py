@@ -130,7 +130,7 @@ def solve_joint(
     outcome = _solve_named(problem, initial, callback, start)
     if (outcome.why not in _PIN_REFUSALS or outcome.names_undecided or outcome.state is None
             or not problem.pins_touch(outcome.state.poses)):
-        return outcome
+        return _pins_in_the_bone(problem, outcome)
     # Refused over the pins where their shadows touch in a radiograph: the extraction's split
     # of their one bar may be what does not fit. Solved again from the views found, with the
     # bar's edges shared out by the fit (JointProblem.with_pin_edges_shared); the first
@@ -144,7 +144,7 @@ def solve_joint(
     chosen = shared if shared.status == "measured" else outcome
     chosen.iterations = outcome.iterations + shared.iterations
     chosen.seconds = time.perf_counter() - start
-    return chosen
+    return _pins_in_the_bone(problem, chosen)
 
 
 # Refusals over how the pins fit, which the pins' shadows touching may explain.
@@ -214,18 +214,35 @@ _BONE_NAMING_MAX_OVERLAP = 0.75
 
 def _out_of_bone(first: tuple[JointProblem, SolveOutcome], second: tuple[JointProblem, SolveOutcome]
                  ) -> tuple[float, float] | None:
-    """How far each of the two namings' solves leaves a pin out of the bone (pin_naming), or
-    None where the bone cannot tell: a solve without pins, or a view with the pins one
-    behind the other."""
-    solved = (first, second)
-    overlaps = [pin_overlaps(problem, o.state) for problem, o in solved
-                if o.state is not None and len(o.T_tibia_pin) == 2]
-    if len(overlaps) != 2 or any(v.share > _BONE_NAMING_MAX_OVERLAP for views in overlaps for v in views):
+    """How far each of the two namings' solves leaves a pin out of the bone, or None where
+    the bone cannot tell for either (:func:`_pin_out_of_bone`)."""
+    one, other = _pin_out_of_bone(*first), _pin_out_of_bone(*second)
+    return None if one is None or other is None else (one, other)
+
+
+def _pin_out_of_bone(problem: JointProblem, outcome: SolveOutcome) -> float | None:
+    """How far the solve leaves a pin's deeper end out of the bone (mm, pin_naming), or None
+    where the bone cannot tell: a solve without pins, or a view with the pins one behind the
+    other (it cannot say how deep each is)."""
+    if outcome.state is None or len(outcome.T_tibia_pin) != 2:
         return None
-    plan = first[0].plan
-    sdf, length = plan.bone_model().sdf, plan.pin_length()
-    return (pins_out_of_bone_mm(first[1].T_tibia_pin, length, sdf),
-            pins_out_of_bone_mm(second[1].T_tibia_pin, length, sdf))
+    if any(view.share > _BONE_NAMING_MAX_OVERLAP for view in pin_overlaps(problem, outcome.state)):
+        return None
+    plan = problem.plan
+    return pins_out_of_bone_mm(outcome.T_tibia_pin, plan.pin_length(), plan.bone_model().sdf)
+
+
+def _pins_in_the_bone(problem: JointProblem, outcome: SolveOutcome) -> SolveOutcome:
+    """``outcome``, refused where it is measured with a pin that does not reach into the
+    bone: the pins are drilled into the tibia, so such a pose is wrong whatever its fit
+    (retractors seed 24, with a pin's outline uncharged beside a blade: its first naming
+    passed every gate with its CTR 9.1 deg off and a pin 14 mm out of the bone)."""
+    if outcome.status != "measured":
+        return outcome
+    out_of_bone = gates.pin_out_of_bone(_pin_out_of_bone(problem, outcome))
+    if out_of_bone is not None:
+        outcome.status, outcome.reason, outcome.why = "not_measured", out_of_bone, Why.GATE_FAILED
+    return outcome
 
 
 def _solve_restarting(problem: JointProblem, initial: InitialGuess,

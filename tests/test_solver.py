@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from slamtka.sim.simulate import SimulationConfig, simulate_case
-from slamtka.solver import gates, optimizer
+from slamtka.solver import gates, optimizer, slam
 from slamtka.solver.diagnostics import PinOverlap, SolveDiagnostics, diagnose
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
@@ -875,6 +875,23 @@ def test_pins_out_of_the_bone_are_measured_from_their_deeper_end(phantom_plan):
     # One pin slid 60 mm out along its axis, away from its tip: its tip is then out.
     slid = [case.truth_T_tibia_pin[0], case.truth_T_tibia_pin[1] @ Pose(np.eye(3), np.array([0.0, 0.0, 60.0]))]
     assert pins_out_of_bone_mm(slid, length, sdf) > 10.0
+
+
+def test_a_measured_solve_with_a_pin_out_of_the_bone_is_refused(phantom_plan):
+    """The pins are drilled into the tibia: a measured solve whose pin ends clearly outside
+    it has a wrong pose, whatever its fit (retractors seed 24: its first naming passed every
+    gate 9.1 deg off with a pin 14 mm out). A measured solve in the bone stands as it is."""
+    case = simulate_case(phantom_plan, SimulationConfig(seed=0))
+    problem = JointProblem(phantom_plan, case.views, SolverConfig())
+    outcome = solve_joint(phantom_plan, case.views, case.initial)
+    assert outcome.status == "measured", outcome.reason
+    assert slam._pins_in_the_bone(problem, outcome).status == "measured"
+    slid = outcome.T_tibia_pin[1] @ Pose(np.eye(3), np.array([0.0, 0.0, 60.0]))
+    outcome.T_tibia_pin = [outcome.T_tibia_pin[0], slid]
+    outcome.state = replace(outcome.state, poses={**outcome.state.poses, pin_key("pin2"): slid})
+    refused = slam._pins_in_the_bone(problem, outcome)
+    assert refused.status == "not_measured" and refused.why is Why.GATE_FAILED
+    assert "a solved pin does not reach into the tibia" in refused.reason
 
 
 def test_namings_compare_their_costs_in_units_of_the_fits_own_dispersion():
