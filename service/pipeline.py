@@ -536,8 +536,7 @@ class Pipeline:
         return {"camera": self._calibrated().camera.to_json(),
                 "views": [{"view_id": o.view_id, **{label: o.contours[label].tolist()
                                                     for label in LABELS}, "notes": o.notes,
-                           **{name: None if region is None else region.to_json()
-                              for name, region in (("bone_visible", o.bone_visible), ("pin_field", o.pin_field))},
+                           "bone_visible": None if o.bone_visible is None else o.bone_visible.to_json(),
                            "pins_opaque": o.pins_opaque}
                           for o in observations],
                 "initial": {"T_cam_tibia": [T.to_json() for T in initial.T_cam_tibia],

@@ -155,11 +155,6 @@ def check_recording(rec: Recording, expected: MeasurementResult) -> list[str]:
     return problems
 
 
-def _region(view: dict, name: str) -> VisibleRegion | None:
-    """A recorded view's visible region ``name``, None where the recording has none."""
-    return VisibleRegion.from_json(view[name]) if view.get(name) else None
-
-
 def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
     """Re-run the solver from the recorded inputs: (angles or refusal, notes)."""
     plan, inputs = _recorded_plan(rec)
@@ -172,9 +167,9 @@ def resolve_recording(rec: Recording) -> tuple[dict, list[str]]:
     searches = recorded_edge_searches(rec)
     views = [ViewObservation(v["view_id"], camera,
                              {label: np.asarray(v[label], float).reshape(-1, 2) for label in LABELS},
-                             dict(v.get("notes", {})), _region(v, "bone_visible"),
-                             searches.get(v["view_id"]), bool(v.get("pins_opaque", False)),
-                             pin_field=_region(v, "pin_field"))
+                             dict(v.get("notes", {})),
+                             VisibleRegion.from_json(v["bone_visible"]) if v.get("bone_visible") else None,
+                             searches.get(v["view_id"]), bool(v.get("pins_opaque", False)))
              for v in inputs["views"]]
     solver = (rec.result or {}).get("solver") or {}
     if solver.get("bone_edges") == "sought near the model" and any(

@@ -141,14 +141,6 @@ class VisibleRegion:
         found[inside] = self.cells[cell[inside, 1], cell[inside, 0]]
         return found
 
-    def mask(self, width: int, height: int) -> np.ndarray:
-        """The region pixel by pixel over an image of ``width`` x ``height`` (bool)."""
-        fine = np.repeat(np.repeat(self.cells, self.cell_px, axis=0), self.cell_px, axis=1)
-        out = np.zeros((height, width), bool)
-        h, w = min(height, fine.shape[0]), min(width, fine.shape[1])
-        out[:h, :w] = fine[:h, :w]
-        return out
-
 
 class EdgeSearch(Protocol):
     """A frame's bone edges near an expected outline (:class:`slamtka.solver.imaging.edges.
@@ -186,9 +178,6 @@ class ViewObservation:
     # other's shadow). None: the extraction's names and contours stand.
     pin_edges: np.ndarray | None = None
     pins_visible: dict[str, VisibleRegion] | None = None
-    # Where a pin's edge could be seen at all: inside the exposed field (None: wherever the
-    # camera reaches). A pin running out of the field has no contour beyond it to lie on.
-    pin_field: VisibleRegion | None = None
     _distance_maps: dict[str, DistanceMap] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -210,7 +199,7 @@ class ViewObservation:
         not replaced, and of a label handed another's very array (a swap of names)."""
         view = ViewObservation(self.view_id, self.camera, {**self.contours, **contours},
                                self.notes, self.bone_visible, self.bone_edge_search,
-                               self.pins_opaque, self.pin_edges, self.pins_visible, self.pin_field)
+                               self.pins_opaque, self.pin_edges, self.pins_visible)
         for label in view.contours:
             given = contours.get(label, self.contours[label])
             built = [other for other, own in self.contours.items()

@@ -199,7 +199,7 @@ class JointProblem:
             if edges is None:
                 edges = np.vstack([view.contours[label] for label in PIN_LABELS])
             views[k] = replace(view.with_contours(**self._shared_out(k, edges, poses)), pin_edges=edges,
-                               pins_visible=self._outside_other_shadow(shadows, view.pin_field))
+                               pins_visible=self._outside_other_shadow(shadows))
             shared.append(view.view_id)
         if not shared:
             return self, []
@@ -245,14 +245,12 @@ class JointProblem:
         return {"pin1": edges[clear & (to_first < to_second)], "pin2": edges[clear & (to_second < to_first)]}
 
     @staticmethod
-    def _outside_other_shadow(shadows: list[np.ndarray], field: VisibleRegion | None
-                              ) -> dict[str, VisibleRegion]:
+    def _outside_other_shadow(shadows: list[np.ndarray]) -> dict[str, VisibleRegion]:
         """Where each pin's own edge can be seen: outside the other pin's shadow (uint8
         masks), grown by a pixel (an outline along the other's edge is that edge's as much
-        as its own), and within the view's ``field`` for pins."""
+        as its own)."""
         grown = [_grown(shadow, 1.0) for shadow in shadows]
-        seen = True if field is None else field.mask(*grown[0].shape[::-1])
-        return {"pin1": VisibleRegion(~grown[1] & seen, 1), "pin2": VisibleRegion(~grown[0] & seen, 1)}
+        return {"pin1": VisibleRegion(~grown[1], 1), "pin2": VisibleRegion(~grown[0], 1)}
 
     def _outline_px(self, k: int, label: str, poses: Mapping[PoseKey, Pose]) -> np.ndarray:
         """Pixels (N, 2) of the outline of ``label``'s model in view ``k`` at ``poses``."""
@@ -367,7 +365,7 @@ class JointProblem:
                     c.sampling.silhouette_spacing_px * thinning,
                     outer_only=(label == "bone"), freeze_outline=freeze_outline,
                     visible=view.bone_visible if label == "bone" else
-                    (view.pins_visible or {}).get(label, view.pin_field)))
+                    (view.pins_visible or {}).get(label)))
         return terms
 
     def odometry_terms(self, initial: InitialGuess) -> list[Term]:

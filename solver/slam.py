@@ -235,8 +235,9 @@ def _pin_out_of_bone(problem: JointProblem, outcome: SolveOutcome) -> float | No
 def _pins_in_the_bone(problem: JointProblem, outcome: SolveOutcome) -> SolveOutcome:
     """``outcome``, refused where it is measured with a pin that does not reach into the
     bone: the pins are drilled into the tibia, so such a pose is wrong whatever its fit
-    (retractors seed 24, with a pin's outline uncharged beside a blade: its first naming
-    passed every gate with its CTR 9.1 deg off and a pin 14 mm out of the bone)."""
+    (retractors seed 24, with a pin's outline uncharged beside a blade, a variant tried and
+    not kept: its first naming passed every gate with its CTR 9.1 deg off and a pin 14 mm out
+    of the bone; the naming's bone check, reached because the names were open, refused it)."""
     if outcome.status != "measured":
         return outcome
     out_of_bone = gates.pin_out_of_bone(_pin_out_of_bone(problem, outcome))

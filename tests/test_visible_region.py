@@ -1,16 +1,12 @@
 """What a frame hides: the bone's outline is charged, and judged, only where the frame could
 show its edge (metal, collimator blades, text, the pins' shadows hide it)."""
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
-from slamtka.sim.simulate import SimulationConfig, default_camera, simulate_case
-from slamtka.sim.xray import XRayParams, render_radiograph
+from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver.diagnostics import outline_fits
 from slamtka.solver.gates import Why
-from slamtka.solver.imaging.contours import extract_contours
 from slamtka.solver.observations import ViewObservation, VisibleRegion
 from slamtka.solver.optimizer import RobustLoss, State, correspond
 from slamtka.solver.problem import JointProblem, named_poses
@@ -82,56 +78,3 @@ def test_a_view_whose_outline_is_mostly_hidden_is_refused_naming_it(phantom_plan
     assert outcome.status == "not_measured"
     assert outcome.why is Why.BONE_OUTLINE_INSUFFICIENT
     assert f"view {views[1].view_id}: too little of the tibia outline is visible" in outcome.reason
-
-
-def _pin_out_of_field(view: ViewObservation, label: str, field_ends_at_u: float) -> ViewObservation:
-    """``view`` as if the exposed field ended at column ``field_ends_at_u``, across ``label``'s
-    shadow: its contour is gone beyond, and the frame says where pins can be seen."""
-    h, w = -(-view.camera.height // CELL_PX), -(-view.camera.width // CELL_PX)
-    cells = np.ones((h, w), bool)
-    cells[:, int(field_ends_at_u // CELL_PX):] = False
-    field = VisibleRegion(cells, CELL_PX)
-    pin = view.contours[label]
-    return replace(view.with_contours(**{label: pin[field.contains(pin)]}), pin_field=field)
-
-
-def test_a_pin_running_out_of_the_field_is_charged_only_inside_it(phantom_plan):
-    """A pin's shadow running out of the exposed field (a long pin in an oblique view, the
-    field's edge or a collimator blade) has no contour beyond it. Told where the field ends,
-    the pin's outline there is not charged, and the gate reads what is left: at the true
-    poses, with half of pin 1's shadow out of view 1's field, the outline's tenth farthest
-    from the contour lies tens of pixels off unmarked (the gate's limit is 60 px) and on it
-    marked."""
-    case = simulate_case(phantom_plan, SimulationConfig(seed=0))
-    pin = case.views[0].contours["pin1"]
-    cut = [_pin_out_of_field(case.views[0], "pin1", float(np.median(pin[:, 0])))] + case.views[1:]
-    unmarked = [replace(cut[0], pin_field=None)] + cut[1:]
-    truth = State(named_poses(case.truth_T_cam_tibia, case.truth_T_tibia_pin), np.zeros((0, 3)))
-
-    def pin1_p90(views: list[ViewObservation]) -> float:
-        fits = outline_fits(JointProblem(phantom_plan, views, SolverConfig()), truth, ("pin1",))
-        return next(fit.p90_px for fit in fits if fit.view_id == views[0].view_id)
-
-    assert pin1_p90(unmarked) > 20.0
-    assert pin1_p90(cut) < 2.0
-    outcome = solve_joint(phantom_plan, cut, case.initial)
-    assert outcome.status == "measured", outcome.reason
-    ctr, str_ = np.degrees([outcome.plane.ctr, outcome.plane.str_])
-    assert abs(ctr - case.truth_ctr_deg) < 0.3 and abs(str_ - case.truth_str_deg) < 0.3
-
-
-def test_the_extraction_says_pins_are_seen_only_inside_the_field(phantom_plan):
-    """An image intensifier's round field: outside the circle no pin's edge can be seen, and
-    the observation carries that to the solver over undistorted pixels."""
-    case = simulate_case(phantom_plan, SimulationConfig(seed=0))
-    camera = default_camera()
-    r = render_radiograph(phantom_plan, case.truth_T_cam_tibia[0], case.truth_T_tibia_pin, camera, XRayParams(),
-                          np.random.default_rng(0))
-    found = extract_contours(r.image)
-    seen = VisibleRegion(found.pins_visible, found.visible_cell_px)
-    centre, radius = np.array(found.diagnostics["fov_centre_px"]), found.diagnostics["fov_radius_px"]
-    corners = np.array([[4.0, 4.0], [camera.width - 4.0, camera.height - 4.0]])
-    assert not seen.contains(corners).any() and seen.contains(centre[None]).all()
-    assert seen.contains(centre[None] + [0.8 * radius, 0.0]).all()
-    observed = found.observation("v", camera, r.distortion.undistort, r.distortion.distort)
-    assert observed.pin_field is not None and not observed.pin_field.contains(corners).any()

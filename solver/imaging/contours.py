@@ -151,9 +151,6 @@ class ExtractedContours:
     # contours not extracted here).
     bone_edge_search: BoneEdgeSearch | None = None
     visible_cell_px: int = VISIBLE_CELL_PX  # raw pixels a side of a cell of bone_visible
-    # Where a pin's edge could be seen (the exposed field), in cells as ``bone_visible``;
-    # None for contours not extracted here.
-    pins_visible: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {"bone": self.bone, "pin1": self.pin1, "pin2": self.pin2}
@@ -164,10 +161,10 @@ class ExtractedContours:
         """The solver's view of these contours, undistorted (``undistort`` and ``distort``
         map raw to ideal pixels and back), with what the frame hides and why a pin has no
         contour."""
-        visible, pin_field = (
-            None if cells is None else VisibleRegion.from_raw(cells, self.visible_cell_px,
-                                                              (camera.width, camera.height), distort)
-            for cells in (self.bone_visible, self.pins_visible))
+        visible = None
+        if self.bone_visible is not None:
+            visible = VisibleRegion.from_raw(self.bone_visible, self.visible_cell_px,
+                                             (camera.width, camera.height), distort)
         contours = {label: undistort(points) if len(points) else points
                     for label, points in self.as_dict().items()}
         # Pins seen one behind the other were given the one bar's edges each: pooled, the fit
@@ -178,7 +175,7 @@ class ExtractedContours:
             view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
                 self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True,
-            pin_edges=contours["pin1"] if behind else None, pin_field=pin_field)
+            pin_edges=contours["pin1"] if behind else None)
 
 
 # -- pins ----------------------------------------------------------------------------------
@@ -1296,7 +1293,7 @@ def _on_frame_pixels(found: ExtractedContours, scale: float) -> ExtractedContour
     edge_search = None if found.bone_edge_search is None else replace(found.bone_edge_search, scale=scale)
     bone, pin1, pin2 = (to_frame_pixels(points, scale) for points in (found.bone, found.pin1, found.pin2))
     return ExtractedContours(bone, pin1, pin2, found.diagnostics | {"working_scale": scale}, found.bone_visible,
-                             edge_search, int(round(found.visible_cell_px * scale)), found.pins_visible)
+                             edge_search, int(round(found.visible_cell_px * scale)))
 
 
 def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:
@@ -1376,10 +1373,6 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         rim_ok = r < (radius if radius is not None else np.inf) - margin - halo
         if radius is None:
             rim_ok &= (u >= margin) & (v >= margin) & (u < w - margin) & (v < h - margin)
-        # A pin's edge can be seen wherever the field is exposed. Its edges beside broad
-        # metal's rim are left out (they may be the metal's), yet its outline there is still
-        # charged: left uncharged, a pin pose 9 deg off passed every gate (retractors seed 24).
-        pins_seen = field & rim_ok
         pins_ok = rim_ok & (_distance_to(_border(broad)) > margin)
         rim_ok &= _distance_to(broad | shutters) > margin
         (pin1, pin2), pins, pin_info = found_pins.result()
@@ -1407,8 +1400,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     return ExtractedContours(bone, pin1, pin2, diagnostics,
                              bone_visible[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX].copy(),
                              BoneEdgeSearch.of_frame(smooth, bone_edges_visible, config.min_edge_strength,
-                                                     config.bone_edge_offset_px),
-                             pins_visible=pins_seen[half::VISIBLE_CELL_PX, half::VISIBLE_CELL_PX])
+                                                     config.bone_edge_offset_px))
 
 
 def load_manual_contours(path: str | Path) -> tuple[str, dict[str, ExtractedContours]]:
