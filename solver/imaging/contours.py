@@ -709,9 +709,10 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
             return bars, overlap, edges[mine]
         whole = _fit_bar(edges[mine])
         whole_width = _edge_width(whole, edges[mine])
-        if (seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length
-                and _side_wander(whole, np.argwhere(labels == shadow)[:, ::-1].astype(float)) <= _PIN_SIDE_WANDER_PX):
-            seen = ONE_BAR_ONE_WIDE
+        if seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length:
+            pixels = np.argwhere(labels == shadow)[:, ::-1].astype(float)
+            if _side_wander(whole, pixels) <= _PIN_SIDE_WANDER_PX:
+                seen = ONE_BAR_ONE_WIDE
         if behind is None and widths.two_behind(whole_width):
             seen = ONE_BAR_TWO_WIDE
             thirds = _widths_along(whole, edges[mine])
