@@ -90,7 +90,7 @@ class SolveOutcome:
     # Of those, the ones that kept an edge point in the final energy (the rest strayed off
     # the bone); empty for methods without edge points and for solves never run.
     edge_point_counts: dict[str, int] = field(default_factory=dict)
-    initialisation: str = SolveStart.ENCODERS
+    initialisation: SolveStart = SolveStart.ENCODERS
     went_astray: bool = False  # refused because the solve lost its way, not for the geometry
     bone_edges_sought: bool = False  # the bone contours were sought near the model's outline
     why: Why | None = None  # the kind of refusal, when not measured (a stable code)

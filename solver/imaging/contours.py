@@ -699,7 +699,8 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     behind: tuple[list[_Bar], str, np.ndarray] | None = None
     seen: str | None = None
     for shadow in shadows:
-        own = cv2.dilate((labels == shadow).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        in_shadow = labels == shadow
+        own = cv2.dilate(in_shadow.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
@@ -710,7 +711,7 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         whole = _fit_bar(edges[mine])
         whole_width = _edge_width(whole, edges[mine])
         if seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length:
-            pixels = np.argwhere(labels == shadow)[:, ::-1].astype(float)
+            pixels = np.argwhere(in_shadow)[:, ::-1].astype(float)
             if _side_wander(whole, pixels) <= _PIN_SIDE_WANDER_PX:
                 seen = ONE_BAR_ONE_WIDE
         if behind is None and widths.two_behind(whole_width):
