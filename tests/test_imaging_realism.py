@@ -607,6 +607,17 @@ def test_headed_pins_pass_as_straight_bars(phantom_plan, scene):
     assert _labelled(frame.radiograph, found)
 
 
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+@pytest.mark.parametrize("seed", [22, 27])
+def test_headed_pins_in_line_are_measured(seed):
+    """Headed pins seeds 22 and 27: in one view the pins lie in line, one overlapping the
+    other, and a head stands out of both sides of their one shadow (on its end, or on the
+    other pin's shaft). Read as a step between the pins, it cut the split wrong: seed 27 was
+    refused as "one bar a pin wide", seed 22 as "the two pins lie one behind the other"."""
+    row = realism_case(("phantom", "headed_pins", seed, (1,), str(SHARED_DATA)))
+    assert row["levels"][1]["status"] == "success", row["levels"][1]
+
+
 @pytest.mark.parametrize("seed, view", [(1, 0), (10, 1), (11, 1)])
 def test_a_pin_whose_excess_dips_beside_the_air_is_found_whole(phantom_plan, scene, seed, view):
     """Scatter scene. Behind steel the detector sees the scatter, high beside the air by

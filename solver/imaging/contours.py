@@ -321,6 +321,57 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
 
 
+_HEAD_MARGIN_SHARE = 0.2  # of the shaft's width: how far a head stands out of each side, at least
+_HEAD_MOST_WIDTHS = 3.0  # of the shaft's width: the longest run of a bar's sides taken for a head
+
+
+def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Which of one shadow's edge points lie on the sides of a pin's head (True).
+
+    A head (the plan's pin model has none) stands out of *both* sides of the shaft at once,
+    over a short run of its length, and each side comes back to where it was on either
+    end. Where two pins in line overlap, offset across, the union widens over a short run
+    too (real surgeon's views seed 10, view 1: 70 px), but each side steps once and stays
+    out: one side does not come back, and that step is the split's evidence. A head left
+    on the sides is read as such a step: headed pins seed 3, view 1 (two pins in line, the
+    second pin's head on the first pin's shaft) was split there and its first pin cut to a
+    third of its length.
+    """
+    flagged = np.zeros(len(edges), bool)
+    bar = _fit_bar(edges)
+    across_axis = np.array([-bar.direction[1], bar.direction[0]])
+    s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ across_axis
+    long = np.abs(normals @ across_axis) > 0.9
+    top, bottom = long & (o > 0), long & (o < 0)
+    if np.count_nonzero(top) < _MIN_PIN_EDGES or np.count_nonzero(bottom) < _MIN_PIN_EDGES:
+        return flagged
+    width = float(np.median(o[top]) - np.median(o[bottom]))
+    margin = max(_HEAD_MARGIN_PX, _HEAD_MARGIN_SHARE * width)
+    step = max(0.5 * width, 1.0)
+    bins = ((s - s.min()) / step).astype(int)
+    count = int(bins.max()) + 1
+    # Each side's level in each slice, outward positive (NaN where a slice has none).
+    levels = []
+    for side, sign in ((top, 1.0), (bottom, -1.0)):
+        total = np.bincount(bins[side], minlength=count)
+        level = np.bincount(bins[side], sign * o[side], minlength=count) / np.maximum(total, 1)
+        levels.append(np.where(total > 0, level, np.nan))
+    typical = [float(np.nanmedian(level)) for level in levels]
+    both = (levels[0] > typical[0] + margin) & (levels[1] > typical[1] + margin)
+    longest = int(_HEAD_MOST_WIDTHS * width / step)
+    reach = int(np.ceil(2.0 * width / step))  # slices read on either end of a run
+    head_bins = np.zeros(count, bool)
+    bounds = np.flatnonzero(np.diff(np.concatenate([[0], both.astype(np.int8), [0]])))
+    for start, stop in zip(bounds[::2], bounds[1::2]):
+        run = slice(start, stop)
+        ends = (slice(max(start - reach, 0), start), slice(stop, min(stop + reach, count)))
+        comes_back = [np.nanmedian(level[run]) > np.nanmedian(level[end]) + margin
+                      for level in levels for end in ends if np.isfinite(level[end]).any()]
+        if stop - start <= longest and comes_back and all(comes_back):
+            head_bins[run] = True
+    return long & head_bins[bins]
+
+
 _HEAD_MARGIN_PX = 3.0
 _PIN_EDGE_REACH_PX = 6.0  # an edge this far from both pins' bars belongs to another shadow
 # The two pins of a block are parallel and alike: two shadows are taken as the pair only
@@ -675,12 +726,12 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
                ) -> tuple[list[_Bar], str, np.ndarray] | str | None:
     """When no two shadows are the pins, the one that holds both: of the candidates, largest
     first, the first that splits into two bars no wider than a pin on average (a strip of a
-    retractor blade does not; a split's bars come out uneven where pin heads add steps to
-    its sides) and each as long as a pin can be (``least_length``: one pin's shadow with no
+    retractor blade does not) and each as long as a pin can be (``least_length``: one pin's shadow with no
     step on its sides, the other pin missed, is not cut into two half pins; patella seeds 0
     and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its bars, how they
     overlap and its edge points. All are tried: two pins in line across three blades are a
-    smaller shadow than the blades' strips (retractors seed 22, view 2).
+    smaller shadow than the blades' strips (retractors seed 22, view 2). The sides of pin
+    heads are left out first (``_head_sides``): a head is no step between two pins.
 
     If none splits, a bar clearly wider than one pin but no wider than two side by side,
     alike along its length, is the pins seen one behind the other (a lateral view: views
@@ -704,6 +755,7 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
+        mine[mine] = ~_head_sides(edges[mine], normals[mine])
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
         width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
         if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:

@@ -1,0 +1,65 @@
+"""A pin's head is no step between two pins: its sides are left out before a bar is split."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from slamtka.solver.imaging.contours import (
+    ContourConfig,
+    _head_sides,
+    _PinWidths,
+    _split_one,
+)
+from slamtka.solver.imaging.edges import outline_with_normals
+
+_EXPECTED_WIDTH_PX = 20.0
+_LEAST_LENGTH_PX = 200.0  # 0.4 of the 500 px the initial pose foresees
+
+
+def _shadow(blocks: list[tuple[int, int, int, int]]) -> np.ndarray:
+    """A label image holding the union of ``(x0, x1, y0, y1)`` blocks as shadow 1."""
+    labels = np.zeros((200, 700), np.int32)
+    for x0, x1, y0, y1 in blocks:
+        labels[y0:y1, x0:x1] = 1
+    return labels
+
+
+# Two headed pins in line, 20 px wide, the pins seen nearly along the resection plane (a
+# lateral view): pin A from its head at x = 50 to x = 450, pin B from its head at x = 150 to
+# x = 550. B's head (32 px across, 40 px long) stands on A's shaft: headed pins seed 3, view 1.
+_HEADED_IN_LINE = [(50, 550, 90, 110), (50, 90, 84, 116), (150, 190, 84, 116)]
+
+
+def test_a_head_standing_on_the_other_pins_shaft_does_not_cut_the_bar():
+    """Read as a step, the head cut pin A to the 100 px before it, shorter than a pin can
+    be, and the case was refused ("one bar a pin wide"). Without the head's sides the bar
+    is split as pins in line are, each part as long as a pin can be."""
+    labels = _shadow(_HEADED_IN_LINE)
+    edges, normals = outline_with_normals(labels > 0, 10)
+    widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
+    split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
+    assert isinstance(split, tuple)
+    bars, overlap, _ = split
+    assert overlap in ("coincident", "staggered")
+    assert min(2.0 * bar.half_length for bar in bars) >= _LEAST_LENGTH_PX
+
+
+def test_only_the_heads_sides_are_left_out():
+    labels = _shadow(_HEADED_IN_LINE)
+    edges, normals = outline_with_normals(labels > 0, 10)
+    heads = _head_sides(edges, normals)
+    assert heads.any()
+    x = edges[heads, 0]
+    assert np.all(((x > 45) & (x < 95)) | ((x > 145) & (x < 195)))
+    # The shaft's sides, away from the heads, are all kept.
+    shaft = (edges[:, 0] > 220) & (edges[:, 0] < 520)
+    assert not heads[shaft].any()
+
+
+def test_two_pins_in_line_offset_across_have_no_head():
+    """Where two pins in line overlap, offset across, the union widens over a short run as
+    under a head (real surgeon's views seed 10, view 1), but each side steps once and stays
+    out: that is the split's evidence, never a head."""
+    labels = _shadow([(50, 350, 90, 110), (300, 600, 102, 122)])
+    edges, normals = outline_with_normals(labels > 0, 10)
+    assert not _head_sides(edges, normals).any()
