@@ -321,6 +321,7 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
 
 
+_HEAD_MARGIN_PX = 3.0
 _HEAD_MARGIN_SHARE = 0.2  # of the shaft's width: how far a head stands out of each side, at least
 _HEAD_MOST_WIDTHS = 3.0  # of the shaft's width: the longest run of a bar's sides taken for a head
 
@@ -372,7 +373,6 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return long & head_bins[bins]
 
 
-_HEAD_MARGIN_PX = 3.0
 _PIN_EDGE_REACH_PX = 6.0  # an edge this far from both pins' bars belongs to another shadow
 # The two pins of a block are parallel and alike: two shadows are taken as the pair only
 # when this close in direction and width; of several such pairs, the closest.
@@ -726,12 +726,13 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
                ) -> tuple[list[_Bar], str, np.ndarray] | str | None:
     """When no two shadows are the pins, the one that holds both: of the candidates, largest
     first, the first that splits into two bars no wider than a pin on average (a strip of a
-    retractor blade does not) and each as long as a pin can be (``least_length``: one pin's shadow with no
-    step on its sides, the other pin missed, is not cut into two half pins; patella seeds 0
-    and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its bars, how they
-    overlap and its edge points. All are tried: two pins in line across three blades are a
-    smaller shadow than the blades' strips (retractors seed 22, view 2). The sides of pin
-    heads are left out first (``_head_sides``): a head is no step between two pins.
+    retractor blade does not) and each as long as a pin can be (``least_length``: one pin's
+    shadow with no step on its sides, the other pin missed, is not cut into two half pins;
+    patella seeds 0 and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its
+    bars, how they overlap and its edge points. All are tried: two pins in line across
+    three blades are a smaller shadow than the blades' strips (retractors seed 22, view 2).
+    The sides of pin heads are left out first (``_head_sides``): a head is no step between
+    two pins.
 
     If none splits, a bar clearly wider than one pin but no wider than two side by side,
     alike along its length, is the pins seen one behind the other (a lateral view: views
