@@ -160,7 +160,7 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
     plan, views, config = problem.plan, problem.views, problem.config
     outcome = (_solve_restarting(problem, initial, callback, start) if poses is None
                else _solve_from(problem, initial, poses, callback, start))
-    if not outcome.unclear_naming or (outcome.status != "measured" and outcome.why not in _NAMING_REFUSALS):
+    if not outcome.unclear_naming or (outcome.status != "measured" and not _naming_may_explain(outcome)):
         return outcome
     # The pins' names were left open by their sightings at the bone's poses. At the poses
     # solved they may be clear (a wrong naming never was on the simulated cases, where the
@@ -203,6 +203,14 @@ def _solve_named(problem: JointProblem, initial: InitialGuess,
 # seed 2 at level 3: the first naming's pins 2.4-3.2 px off their contours, the other's
 # 0.5); which naming then stands is pin_naming.settle_naming's.
 _NAMING_REFUSALS = (Why.DEGENERATE, Why.GATE_FAILED)
+
+
+def _naming_may_explain(outcome: SolveOutcome) -> bool:
+    """Whether the other naming of the open views may fit where this refused solve did not:
+    a fit gate or too uncertain angles, or, with a bar shared out, its pins indistinct (a
+    bar's edges shared out follow whatever naming the fit has: retractors seed 24's first
+    shared solve, 5 deg off, left a fifth of its bar off both pins, the other naming 2.5%)."""
+    return outcome.why in _NAMING_REFUSALS or (outcome.why is Why.PINS_INDISTINCT and bool(outcome.pins_shared))
 
 
 # Where a view shows the pins more than this much on each other, it cannot say where each
