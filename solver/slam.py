@@ -249,9 +249,12 @@ def _pins_in_the_bone(problem: JointProblem, outcome: SolveOutcome) -> SolveOutc
     if outcome.status != "measured":
         return outcome
     out_of_bone = gates.pin_out_of_bone(_pin_out_of_bone(problem, outcome))
-    if out_of_bone is not None:
-        outcome.status, outcome.reason, outcome.why = "not_measured", out_of_bone, Why.GATE_FAILED
-    return outcome
+    if out_of_bone is None:
+        return outcome
+    # Refused as every gate refuses: no plane nor angle uncertainty goes with it (the result
+    # document and the recording draw a plane wherever an outcome carries one).
+    return replace(outcome, status="not_measured", reason=out_of_bone, why=Why.GATE_FAILED,
+                   plane=None, angle_cov=None)
 
 
 def _solve_restarting(problem: JointProblem, initial: InitialGuess,

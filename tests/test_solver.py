@@ -911,6 +911,7 @@ def test_a_measured_solve_with_a_pin_out_of_the_bone_is_refused(phantom_plan):
     refused = slam._pins_in_the_bone(problem, outcome)
     assert refused.status == "not_measured" and refused.why is Why.GATE_FAILED
     assert "a solved pin does not reach into the tibia" in refused.reason
+    assert refused.plane is None and refused.angle_cov is None
 
 
 def test_namings_compare_their_costs_in_units_of_the_fits_own_dispersion():
