@@ -236,11 +236,18 @@ def test_pins_in_line_between_blades_are_not_taken_for_pins_one_behind_the_other
 def test_bench_realism_writes_results_and_montage(tmp_path):
     out = tmp_path / "realism"
     assert main(["bench", "realism", "--cases", "1", "--levels", "1", "--models", "phantom",
-                 "--scenes", "idealised,shutters", "--out", str(out)]) == 0
+                 "--scenes", "idealised,shutters+text", "--out", str(out)]) == 0
     doc = json.loads((out / "results.json").read_text())
-    assert [e["scene"] for e in doc["summary"]] == ["idealised", "shutters"]
+    assert [e["scene"] for e in doc["summary"]] == ["idealised", "shutters+text"]
     assert "L1 success" in (out / "results.md").read_text()
     assert (out / "montage.png").stat().st_size > 10_000
+
+
+def test_bench_realism_refuses_an_unknown_nuisance_in_a_combined_scene(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "realism", "--scenes", "femur+drapes", "--out", "/nonexistent"])
+    assert exit_.value.code == 2
+    assert "unknown nuisance(s) ['drapes']" in capsys.readouterr().err
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")

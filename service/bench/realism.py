@@ -23,6 +23,7 @@ import time
 import traceback
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -82,12 +83,14 @@ def _plan(model: str, data: Path) -> Plan:
 
 
 def _room(scene: str, data: Path) -> OperatingRoom:
+    """The scene's nuisances: ``idealised``, ``operating-room`` (all), or nuisances joined by
+    ``+`` (``femur+retractors``: which combination breaks what)."""
     meshes = data / "knee-nuisance"
     if scene == "idealised":
         return OperatingRoom(mesh_folder=meshes)
     if scene == "operating-room":
         return OperatingRoom.everything(meshes)
-    return OperatingRoom.only(scene, meshes)
+    return replace(OperatingRoom(mesh_folder=meshes), **{name: True for name in scene.split("+")})
 
 
 def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> PinShadows:
@@ -338,7 +341,14 @@ def run_realism(args: argparse.Namespace) -> int:
 
 
 def _scenes(text: str) -> list[str]:
-    return names_from(text, ("idealised", "operating-room") + NUISANCES, "scene")
+    """Comma-separated scenes; a scene of several nuisances joins them with ``+``."""
+    scenes = [n.strip() for n in text.split(",") if n.strip()] if text != "all" else ["all"]
+    combined = [s for s in scenes if "+" in s]
+    for scene in combined:
+        names_from(scene.replace("+", ","), NUISANCES, "nuisance")
+    plain = [s for s in scenes if "+" not in s]
+    return (names_from(",".join(plain), ("idealised", "operating-room") + NUISANCES, "scene")
+            if plain else []) + combined
 
 
 def add_realism_bench_parser(kinds: argparse._SubParsersAction) -> None:
@@ -346,7 +356,8 @@ def add_realism_bench_parser(kinds: argparse._SubParsersAction) -> None:
     p.add_argument("--cases", type=int, default=30, help="cases per scene and model (two frames each)")
     p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=[1, 3])
     p.add_argument("--scenes", type=_scenes, default=_scenes("all"),
-                   help="comma-separated scenes, or 'all': idealised, operating-room, " + ", ".join(NUISANCES))
+                   help="comma-separated scenes, or 'all': idealised, operating-room, " + ", ".join(NUISANCES)
+                   + "; nuisances joined by + make one scene (femur+retractors)")
     p.add_argument("--models", type=lambda s: [m.strip() for m in s.split(",")], default=["phantom", "real"],
                    help="phantom and/or real (the shared real tibia, when present)")
     p.add_argument("--data", type=Path, default=SHARED_DATA,
