@@ -604,6 +604,20 @@ def test_pins_of_a_processed_frame_are_found_and_named(phantom_plan, scene, seed
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_a_band_along_a_shutters_edge_is_not_taken_for_the_pins(phantom_plan, scene):
+    """Operating-room seed 6, view 1: the C-arm's edge enhancement leaves a dark band along
+    the left shutter's edge, straight and a pin wide, under the shutter. It was split as
+    both pins while the pins, in line across a blade, were lost."""
+    room = OperatingRoom.everything(MESHES)
+    draw, _ = _room_case(phantom_plan, room, 6)
+    frame, found = _retractors_pins(phantom_plan, scene, 6, 0, room)
+    assert found.diagnostics["shutters"] == 1
+    assert _labelled(frame.radiograph, found)
+    width = frame.radiograph.image.shape[1]
+    assert not any(_under_shutters(draw, pin, width).any() for pin in (found.pin1, found.pin2))
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_headed_pins_pass_as_straight_bars(phantom_plan, scene):
     """Headed pins scene, seed 0 view 1: a head wider than the shaft steps both sides of
     a pin's shadow out near one end; the shadow is still a pin's (straight sides), not a

@@ -596,6 +596,19 @@ def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -
             and len(pixels) >= _PIN_FILL * width * length)
 
 
+# A shadow lying this much under a collimator shutter is no pin's: a C-arm's edge enhancement
+# leaves a dark band along a shutter's edge, as straight and as wide as a pin (operating-room
+# seed 6, view 1: 782 px long, 21 px wide, taken for both pins while the pins were missed).
+_MOST_UNDER_SHUTTER = 0.5
+
+
+def _under_shutters(labels: np.ndarray, count: int, shutters: np.ndarray) -> np.ndarray:
+    """Which components of ``labels`` lie mostly under the collimator ``shutters`` (a mask)."""
+    inside = np.bincount(labels[shutters], minlength=count)[:count]
+    area = np.bincount(labels.ravel(), minlength=count)[:count]
+    return inside > _MOST_UNDER_SHUTTER * np.maximum(area, 1)
+
+
 def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: ContourConfig
               ) -> np.ndarray:
     """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
@@ -935,7 +948,7 @@ def _clipped(A: np.ndarray, valid: np.ndarray, config: ContourConfig) -> np.ndar
     return clipped
 
 
-def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourConfig,
+def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndarray, config: ContourConfig,
           expected: np.ndarray | None, expected_width_px: float | None,
           expected_length_px: float | None) -> tuple[list[np.ndarray], np.ndarray, dict]:
     """Edge points of pin 1 and pin 2, the pins' shadow mask, and diagnostics."""
@@ -960,6 +973,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, config: ContourCo
     count, labels, stats, _ = cv2.connectedComponentsWithStats(weak.astype(np.uint8), connectivity=8)
     good = _pin_like(labels, count, widths, config)
     count, good = _split_crossed(labels, stats, good, widths, config)
+    good &= ~_under_shutters(labels, count, shutters)
     # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
     # Each bar's typical excess, not its peak: a C-arm's window clips the darkest pixels,
     # and where it clips part of one pin the other's peak is a third of it (processing
@@ -1415,7 +1429,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     # The pins are sought on the second core while the bone's tissue is told apart here:
     # both are mostly OpenCV and numpy, which release the GIL.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pins") as pool:
-        found_pins = pool.submit(_pins, A_field, field, broad & field, config, expected_pins,
+        found_pins = pool.submit(_pins, A_field, field, broad & field, shutters, config, expected_pins,
                                  expected_pin_width_px, expected_pin_length_px)
         smoothing = _smoothing_for_noise(A, valid, config)
         smooth = cv2.GaussianBlur(A, (0, 0), smoothing)
