@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamtka.solver.imaging.contours import _fit_bar
+from slamtka.solver.imaging.contours import _fit_bar, _under_shutters
 from slamtka.solver.imaging.edges import outline_with_normals
 
 
@@ -32,3 +32,14 @@ def test_a_bars_outline_points_give_its_width():
     edges, _ = outline_with_normals(mask, 10)
     bar = _fit_bar(edges)
     assert abs(2.0 * bar.half_width - 21.0) < 2.0
+
+
+def test_a_shadow_mostly_under_a_shutter_is_no_pin_candidate():
+    """A band along a shutter's edge lies inside the shutter's mask; a pin that runs under a
+    shutter with most of its length in the field is still a candidate."""
+    labels = np.zeros((200, 600), np.int32)
+    labels[10:190, 5:26] = 1  # a band along the left shutter's edge
+    labels[90:111, 20:320] = 2  # a pin whose end runs under that shutter
+    shutter = np.zeros(labels.shape, bool)
+    shutter[:, :30] = True
+    assert _under_shutters(labels, 3, shutter)[1:].tolist() == [True, False]
