@@ -330,18 +330,28 @@ def _expose(theatre: Theatre, frame: Frame, view: int, fault: str | None,
     exposure (``stall``: the device freezes; ``line``: every byte is lost), expose, store."""
     carm = theatre.carm
     exposure = theatre.exposure_time(view, time.monotonic() + 0.6)
-    time.sleep(max(0.0, exposure - 0.5 - time.monotonic()))
+    time.sleep(max(0.0, exposure - _FAULT_LEAD_S - time.monotonic()))
+    if fault is not None:
+        # On a loaded machine the sleep can overrun past the exposure: the exposure then
+        # waits for the lead after the fault began, else the last reading before the fault
+        # would still be fresh at it (a faulted view initialised from the encoders).
+        exposure = max(exposure, time.monotonic() + _FAULT_LEAD_S)
     if fault == "stall":
-        carm.stall(1.0)
+        carm.stall(2.0 * _FAULT_LEAD_S)
     elif fault == "line":
         carm.corrupt_line(FaultSpec(drop=1.0))
     time.sleep(max(0.0, exposure - time.monotonic()))
     frame.acquisition_datetime = datetime.now(UTC)
     status = client.store(dataset_bytes(frame), frame.sop_instance_uid)
     if fault == "line":
-        time.sleep(max(0.0, exposure + 0.5 - time.monotonic()))
+        time.sleep(max(0.0, exposure + _FAULT_LEAD_S - time.monotonic()))
         carm.corrupt_line(FaultSpec())
     return status
+
+
+# A link fault begins this long before the exposure and lasts as long after it (the
+# readings' freshness limit is 0.1 s).
+_FAULT_LEAD_S = 0.5
 
 
 SERIAL_FAULTS = ("stall", "line")
