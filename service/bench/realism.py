@@ -341,14 +341,18 @@ def run_realism(args: argparse.Namespace) -> int:
 
 
 def _scenes(text: str) -> list[str]:
-    """Comma-separated scenes; a scene of several nuisances joins them with ``+``."""
-    scenes = [n.strip() for n in text.split(",") if n.strip()] if text != "all" else ["all"]
-    combined = [s for s in scenes if "+" in s]
-    for scene in combined:
-        names_from(scene.replace("+", ","), NUISANCES, "nuisance")
-    plain = [s for s in scenes if "+" not in s]
-    return (names_from(",".join(plain), ("idealised", "operating-room") + NUISANCES, "scene")
-            if plain else []) + combined
+    """Comma-separated scenes, in the order given; a scene of several nuisances joins them
+    with ``+``."""
+    known = ("idealised", "operating-room") + NUISANCES
+    if text == "all":
+        return names_from(text, known, "scene")
+    scenes = [n.strip() for n in text.split(",") if n.strip()]
+    for scene in scenes or [""]:
+        if "+" in scene:
+            names_from(scene.replace("+", ","), NUISANCES, "nuisance")
+        else:
+            names_from(scene, known, "scene")
+    return scenes
 
 
 def add_realism_bench_parser(kinds: argparse._SubParsersAction) -> None:
