@@ -618,6 +618,16 @@ def test_a_band_along_a_shutters_edge_is_not_taken_for_the_pins(phantom_plan, sc
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+def test_pins_beside_a_blade_seen_edge_on_pass_as_steel(phantom_plan, scene):
+    """Operating-room seed 25, view 1 (inverted, processed): a retractor blade seen edge-on
+    in the frame's corner has a typical excess of 4.9, the pins 1.8; under half of the
+    strongest bar's, the pins were dropped with the bone's bars and none was found."""
+    frame, found = _retractors_pins(phantom_plan, scene, 25, 0, OperatingRoom.everything(MESHES))
+    assert found.diagnostics["pins_overlap"] == "apart"
+    assert _labelled(frame.radiograph, found)
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_headed_pins_pass_as_straight_bars(phantom_plan, scene):
     """Headed pins scene, seed 0 view 1: a head wider than the shaft steps both sides of
     a pin's shadow out near one end; the shadow is still a pin's (straight sides), not a

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamtka.solver.imaging.contours import _fit_bar, _under_shutters
+from slamtka.solver.imaging.contours import _fit_bar, _steel_level, _under_shutters
 from slamtka.solver.imaging.edges import outline_with_normals
 
 
@@ -43,3 +43,13 @@ def test_a_shadow_mostly_under_a_shutter_is_no_pin_candidate():
     shutter = np.zeros(labels.shape, bool)
     shutter[:, :30] = True
     assert _under_shutters(labels, 3, shutter)[1:].tolist() == [True, False]
+
+
+def test_a_blade_seen_edge_on_does_not_set_the_level_of_steel():
+    """Operating-room seed 25, view 1: a blade seen edge-on (15-20 mm of steel) stands alone
+    far above the two pins, which must still pass as steel; without such a pair the
+    strongest bar sets the level, so bone's far fainter bars stay out."""
+    assert _steel_level(np.array([4.92, 1.85, 1.78, 1.24, 1.23])) == 1.85
+    assert _steel_level(np.array([2.0, 1.9, 0.3, 0.25])) == 2.0
+    assert _steel_level(np.array([2.0, 0.3, 0.25])) == 2.0  # the pins in one bar: bone stays out
+    assert _steel_level(np.array([6.22, 1.22])) == 6.22
