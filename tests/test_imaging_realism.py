@@ -119,6 +119,9 @@ def test_each_nuisance_is_a_seedable_option_and_femur_flexion_swings_backwards(p
     assert set(OperatingRoom.everything().names) == set(NUISANCES)
     with pytest.raises(ValueError, match="unknown nuisance"):
         OperatingRoom.only("fog")
+    with pytest.raises(ValueError, match=r"\['fog'\]"):
+        OperatingRoom.of(["femur", "fog"])
+    assert OperatingRoom.of(["retractors", "femur"]).names == ["femur", "retractors"]
     room = OperatingRoom.only("femur", MESHES)
     a, b = room.draw(5), room.draw(5)
     assert a.flexion_deg == b.flexion_deg and 70.0 <= a.flexion_deg <= 110.0

@@ -23,7 +23,6 @@ import time
 import traceback
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -90,7 +89,7 @@ def _room(scene: str, data: Path) -> OperatingRoom:
         return OperatingRoom(mesh_folder=meshes)
     if scene == "operating-room":
         return OperatingRoom.everything(meshes)
-    return replace(OperatingRoom(mesh_folder=meshes), **{name: True for name in scene.split("+")})
+    return OperatingRoom.of(scene.split("+"), meshes)
 
 
 def _expected_pins(case, k: int, frame: RoomFrame, plan: Plan) -> PinShadows:

@@ -91,9 +91,15 @@ class OperatingRoom:
 
     @staticmethod
     def only(name: str, mesh_folder: Path | None = None) -> OperatingRoom:
-        if name not in NUISANCES:
-            raise ValueError(f"unknown nuisance {name!r}; choose from {', '.join(NUISANCES)}")
-        return replace(OperatingRoom(mesh_folder=mesh_folder), **{name: True})
+        return OperatingRoom.of([name], mesh_folder)
+
+    @staticmethod
+    def of(names: list[str], mesh_folder: Path | None = None) -> OperatingRoom:
+        """The scene with just these nuisances on."""
+        unknown = [name for name in names if name not in NUISANCES]
+        if unknown:
+            raise ValueError(f"unknown nuisance(s) {unknown}; choose from {', '.join(NUISANCES)}")
+        return replace(OperatingRoom(mesh_folder=mesh_folder), **{name: True for name in names})
 
     @property
     def names(self) -> list[str]:
