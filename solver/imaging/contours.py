@@ -189,11 +189,16 @@ class _Bar:
     half_length: float
     half_width: float
 
+    @property
+    def across(self) -> np.ndarray:
+        """The unit direction across the bar (its direction turned a quarter)."""
+        return np.array([-self.direction[1], self.direction[0]])
+
     def distance(self, p: np.ndarray) -> np.ndarray:
         """Distance of points to the bar's rectangle outline, signed negative inside."""
         d = p - self.centre
         along = np.abs(d @ self.direction) - self.half_length
-        across = np.abs(d @ np.array([-self.direction[1], self.direction[0]])) - self.half_width
+        across = np.abs(d @ self.across) - self.half_width
         outside = np.hypot(np.maximum(along, 0), np.maximum(across, 0))
         return np.where((along > 0) | (across > 0), outside, np.maximum(along, across))
 
@@ -340,9 +345,8 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """
     flagged = np.zeros(len(edges), bool)
     bar = _fit_bar(edges)
-    across_axis = np.array([-bar.direction[1], bar.direction[0]])
-    s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ across_axis
-    long = np.abs(normals @ across_axis) > 0.9
+    s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ bar.across
+    long = np.abs(normals @ bar.across) > 0.9
     top, bottom = long & (o > 0), long & (o < 0)
     if np.count_nonzero(top) < _MIN_PIN_EDGES or np.count_nonzero(bottom) < _MIN_PIN_EDGES:
         return flagged
@@ -387,7 +391,7 @@ _EXPECTED_PIN_SPREAD_PX = 150.0
 
 
 def _robust_width(bar: _Bar, points: np.ndarray) -> float:
-    across = (points - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]])
+    across = (points - bar.centre) @ bar.across
     return 4.0 * float(np.median(np.abs(across)))
 
 
@@ -406,8 +410,7 @@ _SIDE_SPAN = 0.8  # of the bar's length, about its centre: a head on an end is l
 
 def _side_wander(bar: _Bar, pixels: np.ndarray) -> float:
     """How far (median px) the wavier long side of a shadow's pixels lies from its line."""
-    n = np.array([-bar.direction[1], bar.direction[0]])
-    along, across = (pixels - bar.centre) @ bar.direction, (pixels - bar.centre) @ n
+    along, across = (pixels - bar.centre) @ bar.direction, (pixels - bar.centre) @ bar.across
     inner = np.abs(along) < _SIDE_SPAN * bar.half_length
     if np.count_nonzero(inner) < 2:
         return 0.0
@@ -515,7 +518,7 @@ def _without_head(edges: np.ndarray, bar: _Bar) -> np.ndarray:
     model has none): points further from the axis than the shaft's edges by a margin."""
     if len(edges) < _MIN_PIN_EDGES:
         return edges
-    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    across = np.abs((edges - bar.centre) @ bar.across)
     return edges[across <= np.median(across) + _HEAD_MARGIN_PX]
 
 
@@ -604,6 +607,8 @@ _MOST_UNDER_SHUTTER = 0.5
 
 def _under_shutters(labels: np.ndarray, count: int, shutters: np.ndarray) -> np.ndarray:
     """Which components of ``labels`` lie mostly under the collimator ``shutters`` (a mask)."""
+    if not shutters.any():
+        return np.zeros(count, bool)
     inside = np.bincount(labels[shutters], minlength=count)[:count]
     area = np.bincount(labels.ravel(), minlength=count)[:count]
     return inside > _MOST_UNDER_SHUTTER * np.maximum(area, 1)
@@ -835,7 +840,7 @@ def _on_sides(bar: _Bar, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     """Each edge point's signed offset along ``bar`` and distance across it, and whether it
     lies on a side (within twice the bar's half width of its axis)."""
     along = (edges - bar.centre) @ bar.direction
-    across = np.abs((edges - bar.centre) @ np.array([-bar.direction[1], bar.direction[0]]))
+    across = np.abs((edges - bar.centre) @ bar.across)
     return along, across, across <= 2.0 * bar.half_width
 
 
@@ -936,7 +941,7 @@ def _bar_and_width(pixels: np.ndarray) -> tuple[_Bar, float]:
 def _off_axis(a: _Bar, b: _Bar) -> float:
     """How far (px) the shorter bar's centre lies off the longer's axis."""
     longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
-    return abs(float((shorter.centre - longer.centre) @ np.array([-longer.direction[1], longer.direction[0]])))
+    return abs(float((shorter.centre - longer.centre) @ longer.across))
 
 
 def _in_line(a: _Bar, width_a: float, b: _Bar, width_b: float) -> bool:
