@@ -66,14 +66,13 @@ from slamtka.solver.imaging.edges import (
 )
 from slamtka.solver.imaging.field import (
     FieldError,
-    attenuation,
     collimator_shutters,
     components,
     field_of_view,
     fill_holes,
     remove_overlays,
 )
-from slamtka.solver.imaging.response import linearised_attenuation
+from slamtka.solver.imaging.response import frame_attenuation
 from slamtka.solver.jsonfile import read_json_object
 from slamtka.solver.observations import ViewObservation, VisibleRegion
 
@@ -1427,12 +1426,11 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
     if valid.sum() < config.min_bone_area_px:
         raise ContourError("the field of view is too small to hold a tibia")
     # A frame stored through a log or gamma response is not linear in the quanta: its
-    # attenuation is read from its own noise instead of -log of the grey level.
-    linearised = linearised_attenuation(image, valid, sign)
-    A = attenuation(image, outside, sign) if linearised is None else linearised
+    # attenuation is read from its own noise (or spread) instead of -log of the grey level.
+    A, response = frame_attenuation(image, valid, outside, sign)
     # The C-arm that processed the frame also sharpened it: the field's rim, a step up from
     # no signal, leaves a halo inside the circle that is neither air nor tissue.
-    halo = _PROCESSED_RIM_HALO_PX if linearised is not None and radius is not None else 0.0
+    halo = _PROCESSED_RIM_HALO_PX if response != "linear" and radius is not None else 0.0
     valid &= r < (radius if radius is not None else np.inf) - halo
     broad = _broad_opaque(A, valid, config)
     field = valid.copy()
@@ -1478,7 +1476,7 @@ def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarra
         "fov_centre_px": centre.tolist(), "fov_radius_px": radius,
         "polarity": "dark" if sign > 0 else "bright",
         "polarity_decisive": sign_decisive,
-        "response": "linear" if linearised is None else "linearised from the noise", **pin_info, **bone_info,
+        "response": response, **pin_info, **bone_info,
         "opaque_area_px": int(broad.sum()), "shutters": len(shutter_lines),
         "smoothing_px": smoothing, "missing": missing,
         "points": {"bone": len(bone), "pin1": len(pin1), "pin2": len(pin2)},

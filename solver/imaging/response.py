@@ -20,7 +20,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-__all__ = ["linearised_attenuation", "noise_by_level"]
+from slamtka.solver.imaging.field import attenuation
+
+__all__ = ["frame_attenuation", "linearised_attenuation", "noise_by_level"]
 
 _BINS = 48
 _MIN_PER_BIN = 100
@@ -31,6 +33,11 @@ _LINEAR_R2 = 0.95
 # Of the range of sqrt(quanta): the offset below the darkest level when the logarithmic
 # fit does not give one.
 _FLOOR_SHARE = 0.05
+# Attenuation between the field's 5th and 95th percentiles. A knee frame read right spans
+# at least the first (the bone alone adds more; simulated frames, linear or linearised from
+# their noise: 0.96-5.5); idealised frames span the second (2.3-2.4).
+_LEAST_SPREAD = 0.9
+_TYPICAL_SPREAD = 2.3
 
 
 def noise_by_level(x: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -103,3 +110,39 @@ def linearised_attenuation(image: np.ndarray, valid: np.ndarray, sign: int) -> n
     s = np.where(x < g[0], root[0] + (x - g[0]) * low, s)
     s = np.where(x > g[-1], root[-1] + (x - g[-1]) * high, s)
     return (-2.0 * np.log(np.maximum(s + floor, 0.5 * floor))).astype(np.float32)
+
+
+
+def frame_attenuation(image: np.ndarray, valid: np.ndarray, outside: float, sign: int
+                      ) -> tuple[np.ndarray, str]:
+    """The frame's attenuation and how its response was read: "linear" (``-log`` of the
+    signal over the no-signal level ``outside``), "linearised from the noise" or
+    "log-stored, read from its spread"."""
+    linearised = linearised_attenuation(image, valid, sign)
+    if linearised is not None:
+        return linearised, "linearised from the noise"
+    read_linear = attenuation(image, outside, sign)
+    log_stored = _log_stored_attenuation(image, valid, sign, read_linear)
+    if log_stored is not None:
+        return log_stored, "log-stored, read from its spread"
+    return read_linear, "linear"
+
+
+def _log_stored_attenuation(image: np.ndarray, valid: np.ndarray, sign: int,
+                            read_linear: np.ndarray) -> np.ndarray | None:
+    """Attenuation (up to a constant) of a frame that, read as linear in the quanta, spans
+    less than any knee frame can, or None when ``read_linear`` spans enough.
+
+    Its noise said linear because it could not say anything: stored in 8 bits, a log
+    response's noise is quantised away (operating-room processing seed 23: 0.4 between
+    the field's 5th and 95th percentiles, half the leg then taken for air). It is read as
+    the common log-stored frame, attenuation linear in the grey level, at the spread of a
+    frame read right; the response's own scale is lost with its noise."""
+    low, high = np.percentile(read_linear[valid][::7], [5.0, 95.0])
+    if high - low >= _LEAST_SPREAD:
+        return None
+    grey = -sign * np.asarray(image, np.float32)
+    low, high = np.percentile(grey[valid][::7], [5.0, 95.0])
+    if high <= low:
+        return None
+    return ((grey - low) * (_TYPICAL_SPREAD / (high - low))).astype(np.float32)
