@@ -63,3 +63,22 @@ def test_two_pins_in_line_offset_across_have_no_head():
     labels = _shadow([(50, 350, 90, 110), (300, 600, 102, 122)])
     edges, normals = outline_with_normals(labels > 0, 10)
     assert not _head_sides(edges, normals).any()
+
+
+def test_a_head_on_the_other_pins_shaft_is_where_that_pin_begins():
+    """Both pins' heads are on their outer ends and the pins point the same way: with A's
+    head at the bar's end and B's on A's shaft, B reaches from its head to the bar's other
+    end, and A, behind it, is as long (within the tenth kept for their difference). Split
+    in the middle instead, each was cut to 250 px of its 400-500 (headed pins seed 3)."""
+    labels = _shadow(_HEADED_IN_LINE)
+    edges, normals = outline_with_normals(labels > 0, 10)
+    widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
+    split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
+    assert isinstance(split, tuple)
+    bars, _, _ = split
+    spans = sorted((float(b.centre[0] - abs(b.half_length * b.direction[0])),
+                    float(b.centre[0] + abs(b.half_length * b.direction[0]))) for b in bars)
+    (a_start, a_stop), (b_start, b_stop) = spans
+    assert a_start < 60 and b_stop > 540
+    assert 140 < b_start < 200
+    assert a_stop - a_start >= 0.85 * (b_stop - b_start)

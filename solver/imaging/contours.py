@@ -261,7 +261,8 @@ def _bar_from_edges(s: np.ndarray, o: np.ndarray, top: np.ndarray, span: tuple[f
 _LENGTH_SHARE = 0.9  # of the other pin's length, where a pin's hidden end is inferred from it
 
 
-def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tuple[list[_Bar], str]:
+def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float,
+                 heads: np.ndarray) -> tuple[list[_Bar], str]:
     """Two bars in one shadow where the pins overlap, and how they overlap.
 
     The steel saturates the detector, so the overlap is no darker than either pin: only the
@@ -273,7 +274,9 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
     over the overlap, so the step is where the other pin ends or the outward one begins; the
     overlap's other end follows from the two pins' equal projected length (one model,
     parallel), kept ``_LENGTH_SHARE`` short of it for the few per cent the two differ.
-    A side without a step is shared by both pins over their spans.
+    A side without a step is shared by both pins over their spans. Where neither side steps,
+    the sides of pin heads (``heads``, left out of ``edges``) may still say where the pins
+    lie (:func:`_spans_from_heads`).
     """
     centre = edges.mean(axis=0)
     _, vectors = np.linalg.eigh(np.cov((edges - centre).T))
@@ -298,7 +301,10 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
             outward.append(0.0)
     known = [at for at in steps if at is not None]
     overlap = "staggered"
-    if not known:
+    by_heads = None if known else _spans_from_heads((heads - centre) @ d, ends, width)
+    if by_heads is not None:
+        spans = by_heads
+    elif not known:
         # The edges coincide. Two pins of one model project to nearly equal lengths, so the
         # middle of the union lies in their overlap: each pin owns the half beyond it.
         middle = 0.5 * (ends[0] + ends[1])
@@ -323,6 +329,28 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float) -> tup
         bar = _fit_bar(edges)  # too short to tell (seen end-on): both pins share the outline
         return [bar, bar], "unresolved"
     return [_bar_from_edges(s[m], o[m], top[m], span, centre, d, n) for m, span in zip(mine, spans)], overlap
+
+
+def _spans_from_heads(heads: np.ndarray, ends: tuple[float, float], width: float
+                      ) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """The spans along a union of two pins in line whose sides do not step, from where its
+    pin heads lie (``heads``: their side points' offsets along it), or None.
+
+    A head is on a pin's outer end, and the two pins of a block point the same way. With
+    one head at an end of the union and another on its shaft, the second head is where the
+    pin in front begins: it reaches to the union's other end, and the pin behind it, whose
+    head is the first, is as long (``_LENGTH_SHARE`` of it). Headed pins seed 3, view 1:
+    split in the middle instead, the first pin was cut 60 px short and the case refused."""
+    near = _HEAD_MOST_WIDTHS * width  # a head's run is no longer
+    at_start, at_end = heads <= ends[0] + near, heads >= ends[1] - near
+    inner = heads[~at_start & ~at_end]
+    if not inner.size or np.ptp(inner) > near or bool(at_start.any()) == bool(at_end.any()):
+        return None
+    if at_start.any():  # the pins point towards the union's far end
+        begin = float(inner.min())
+        return (ends[0], max(begin, ends[0] + _LENGTH_SHARE * (ends[1] - begin))), (begin, ends[1])
+    begin = float(inner.max())
+    return (ends[0], begin), (min(begin, ends[1] - _LENGTH_SHARE * (begin - ends[0])), ends[1])
 
 
 _HEAD_MARGIN_PX = 3.0
@@ -787,8 +815,10 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         mine = own[at[:, 1], at[:, 0]]
         if np.count_nonzero(mine) < _MIN_PIN_EDGES:
             continue
-        mine[mine] = ~_head_sides(edges[mine], normals[mine])
-        bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px)
+        heads = _head_sides(edges[mine], normals[mine])
+        head_points = edges[mine][heads]
+        mine[mine] = ~heads
+        bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px, head_points)
         width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
         if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:
             return bars, overlap, edges[mine]
