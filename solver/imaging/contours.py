@@ -781,7 +781,7 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
 
 
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
-               widths: _PinWidths, least_length: float, config: ContourConfig
+               widths: _PinWidths, least_length: float, config: ContourConfig, stepped_only: bool = False
                ) -> tuple[list[_Bar], str, np.ndarray] | str | None:
     """When no two shadows are the pins, the one that holds both: of the candidates (most
     attenuating first), the first that splits into two bars no wider than a pin on average
@@ -804,7 +804,8 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     where a bar was of that width on average (the pins overlap there), else
     ``ONE_BAR_ONE_WIDE`` where a straight bar one pin wide was as long as a pin (the pins
     exactly one behind the other, or one hidden: surgeon's views seed 19, view 2, a lateral
-    view), else None."""
+    view), else None. ``stepped_only``: only a split that steps on the sides or heads locate
+    ("staggered") is taken."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
     behind: tuple[list[_Bar], str, np.ndarray] | None = None
@@ -820,7 +821,8 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         mine[mine] = ~heads
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px, head_points)
         width = float(np.mean([_edge_width(bar, edges[mine]) for bar in bars]))
-        if width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length:
+        if (width <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length
+                and (overlap == "staggered" or not stepped_only)):
             return bars, overlap, edges[mine]
         whole = _fit_bar(edges[mine])
         whole_width = _edge_width(whole, edges[mine])
@@ -1064,6 +1066,14 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
         # two separate parallel bars of a pin's width are then the pins whatever their
         # length. A single shadow is still not cut into two short halves (see _split_one).
         pair = _parallel_pair(fitted, widths, expected)
+        if pair is None:
+            # Likewise one shadow whose sides step where one pin ends and the other begins
+            # holds two pins whatever their length: steps are evidence, unlike a split in
+            # the middle of a bar with none (the real tibia's seed 11 at level 3, view 1:
+            # pins in line, 139 and 153 px long, foreseen 381).
+            stepped = _split_one(labels, by_steel, edges, normals, widths, _PIN_ELONGATION * widths.least,
+                                 config, stepped_only=True)
+            split = stepped if isinstance(stepped, tuple) else split
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     elif isinstance(split, tuple):
