@@ -12,7 +12,9 @@ by the C-arm's window) is fitted for the common logarithmic response, under whic
 noise's SD is inversely proportional to ``sqrt(I)``.
 
 A frame whose noise variance is linear in the grey level (raw frames, scatter added, low
-dose) is linear in the quanta and left to the exact ``-log`` of its signal.
+dose) is linear in the quanta and left to the exact ``-log`` of its signal, unless that
+spans far less attenuation than any knee frame: then its noise said nothing (8 bits
+quantise a log response's away) and it is read as log-stored (:func:`frame_attenuation`).
 """
 
 from __future__ import annotations
