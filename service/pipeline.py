@@ -440,12 +440,13 @@ class Pipeline:
             else:
                 item.contours, item.contour_source = self._extract(plan, item.view,
                                                                    item.frame, T, pins)
-        polarity = agreed_polarity([i.contours for i in usable if i.contour_source == "extracted"])
+        polarity = agreed_polarity([i.contours for i in usable if i.contour_source != "manual"])
         for item, T in zip(usable, start.T_cam_tibia):
             contours = item.contours
-            if (polarity is not None and item.contour_source == "extracted" and contours is not None
-                    and contours.diagnostics["polarity"] != polarity):
-                # One C-arm stores a case's frames alike: read as the clear ones read.
+            if (polarity is not None and item.contour_source != "manual"
+                    and (contours is None or contours.diagnostics["polarity"] != polarity)):
+                # One C-arm stores a case's frames alike: read (or try again) as the clear
+                # ones read.
                 item.contours, item.contour_source = self._extract(plan, item.view, item.frame, T,
                                                                    pins, polarity)
             if item.contours is None:

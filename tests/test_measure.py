@@ -10,6 +10,7 @@ import pytest
 
 import slamtka.service.pipeline as pipeline
 from slamtka.service.cli import main
+from slamtka.solver.imaging.contours import ContourError
 
 
 @pytest.fixture(scope="module")
@@ -65,27 +66,47 @@ def test_measure_refuses_bad_input_in_one_line_naming_the_file(case, tmp_path, c
         assert len(err.splitlines()) == 1 and message in err, err
 
 
-def test_a_frame_misread_inverted_is_extracted_again_as_its_partner_reads(case, tmp_path, monkeypatch):
-    """The run reads a case's frames with one polarity: view 1 made to read inverted from
-    weak cues (as a collimator blade's edge did in shutters seeds 14 and 23) is extracted
-    again as view 2's clear reading says, and the case measures."""
+def _measured_with_view1_read_by(auto_read, case, tmp_path, monkeypatch) -> list[str]:
+    """Run ``measure`` with view 1's own ("auto") extraction replaced by ``auto_read(pixels,
+    config, **kwargs)``; assert the case measures and return the polarities asked for."""
     real = pipeline.extract_contours
     asked: list[str] = []
     view1 = pydicom.dcmread(case / "frames" / "view1.dcm").pixel_array
 
-    def misreading(pixels, config, **kwargs):
+    def extract(pixels, config, **kwargs):
         asked.append(config.polarity)
         if config.polarity == "auto" and pixels.shape == view1.shape and (pixels == view1).all():
-            found = real(pixels, replace(config, polarity="bright"), **kwargs)
-            found.diagnostics["polarity_decisive"] = False
-            return found
+            return auto_read(real, pixels, config, **kwargs)
         return real(pixels, config, **kwargs)
 
-    monkeypatch.setattr(pipeline, "extract_contours", misreading)
+    monkeypatch.setattr(pipeline, "extract_contours", extract)
     assert main(_args(case, tmp_path / "out")) == 0
     (result,) = (tmp_path / "out").glob("case-*/*/result.json")
     assert json.loads(result.read_text())["status"] == "measured"
-    assert asked == ["auto", "auto", "dark"]
+    return asked
+
+
+def test_a_frame_misread_inverted_is_extracted_again_as_its_partner_reads(case, tmp_path, monkeypatch):
+    """The run reads a case's frames with one polarity: view 1 made to read inverted from
+    weak cues (as a collimator blade's edge did in shutters seeds 14 and 23) is extracted
+    again as view 2's clear reading says, and the case measures."""
+    def misreading(real, pixels, config, **kwargs):
+        found = real(pixels, replace(config, polarity="bright"), **kwargs)
+        found.diagnostics["polarity_decisive"] = False
+        return found
+
+    assert _measured_with_view1_read_by(misreading, case, tmp_path, monkeypatch) == ["auto", "auto", "dark"]
+
+
+def test_a_frame_whose_polarity_could_not_be_told_is_extracted_as_its_partner_reads(case, tmp_path,
+                                                                                    monkeypatch):
+    """View 1 made unreadable by its own cues (as the real tibia's operating-room seed 18
+    showed no steel standing out) is extracted again with view 2's clear polarity, and the
+    case measures instead of being refused for want of a view."""
+    def unreadable(real, pixels, config, **kwargs):
+        raise ContourError("the polarity of the frame cannot be told (no steel stands out); configure it")
+
+    assert _measured_with_view1_read_by(unreadable, case, tmp_path, monkeypatch) == ["auto", "auto", "dark"]
 
 
 def test_frames_of_a_flat_panels_larger_detector_are_measured(tmp_path):

@@ -19,8 +19,14 @@ def test_a_frame_read_from_weak_cues_takes_the_polarity_its_clear_partner_shows(
     assert agreed_polarity([_read("bright", False), None, _read("dark", True)]) == "dark"
 
 
+def test_a_frame_whose_polarity_could_not_be_told_is_tried_again_as_its_clear_partner_reads():
+    """The real tibia's operating-room seed 18: view 1 showed no steel standing out and was
+    not extracted; view 2 read "bright" clearly (and view 1, read so, shows both pins)."""
+    assert agreed_polarity([None, _read("bright", True)]) == "bright"
+    assert agreed_polarity([None, _read("bright", False)]) is None  # nothing clear to go by
+
+
 def test_frames_that_agree_or_that_nothing_clear_contradicts_are_left_as_read():
     assert agreed_polarity([_read("dark", False), _read("dark", True)]) is None
     assert agreed_polarity([_read("bright", False), _read("dark", False)]) is None
     assert agreed_polarity([_read("bright", True), _read("dark", True)]) is None  # both clear: each stands
-    assert agreed_polarity([None, _read("dark", True)]) is None

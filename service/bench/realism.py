@@ -215,9 +215,9 @@ def _extracted(frame: RoomFrame, shadows: PinShadows, polarity: str = "auto") ->
 
 
 def _again_as(polarity: str, frame: RoomFrame, shadows: PinShadows, first: _Extracted) -> _Extracted:
-    """``first`` extracted again with ``polarity`` where it read the frame otherwise; the
-    seconds are both extractions'."""
-    if first[0] is None or first[0].diagnostics["polarity"] == polarity:
+    """``first`` extracted again with ``polarity`` where it read the frame otherwise or
+    could not extract it; the seconds are both extractions'."""
+    if first[0] is not None and first[0].diagnostics["polarity"] == polarity:
         return first
     found, error, seconds = _extracted(frame, shadows, polarity)
     return found, error, first[2] + seconds

@@ -1430,19 +1430,24 @@ def _on_frame_pixels(found: ExtractedContours, scale: float) -> ExtractedContour
 
 def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None:
     """The polarity ("dark", "bright") to extract again with the frames of one case that
-    read another, or None when they agree or nothing clear says otherwise.
+    read another or could not be extracted (None), or None when they agree or nothing clear
+    says otherwise.
 
     A case's frames come from one C-arm that stores them alike. Where the frames whose own
     content says their polarity clearly (``polarity_decisive``) agree, a frame read
     otherwise from weaker cues is read wrongly: shutters seeds 14 and 23 had view 1's taken
     inverted, a collimator blade's bright edge passing for steel, and their bone stage went
-    astray (view 2's periphery says "dark" four to ten times over the decisive level)."""
+    astray (view 2's periphery says "dark" four to ten times over the decisive level). A
+    frame whose own polarity could not be told at all is read as they read too (the real
+    tibia's operating-room seed 18, view 1: "no steel stands out", and the case was refused
+    before the solve)."""
     read = [f.diagnostics for f in extracted if f is not None]
     clear = {d.get("polarity") for d in read if d.get("polarity_decisive")}
     if len(clear) != 1:
         return None
     polarity = clear.pop()
-    return polarity if any(d.get("polarity") != polarity for d in read) else None
+    unread = any(f is None for f in extracted)
+    return polarity if unread or any(d.get("polarity") != polarity for d in read) else None
 
 
 def _extract(pixels: np.ndarray, config: ContourConfig, expected_pins: np.ndarray | None,
