@@ -783,9 +783,9 @@ def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.n
 def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, normals: np.ndarray,
                widths: _PinWidths, least_length: float, config: ContourConfig, stepped_only: bool = False
                ) -> tuple[list[_Bar], str, np.ndarray] | str | None:
-    """When no two shadows are the pins, the one that holds both: of the candidates (most
-    attenuating first), the first that splits into two bars no wider than a pin on average
-    (a strip of a retractor blade does not) and each as long as a pin can be (``least_length``: one pin's
+    """When no two shadows are the pins, the one that holds both: of the candidates, largest
+    first, the first that splits into two bars no wider than a pin on average (a strip of a
+    retractor blade does not) and each as long as a pin can be (``least_length``: one pin's
     shadow with no step on its sides, the other pin missed, is not cut into two half pins;
     patella seeds 0 and 12 at level 3 were measured 2.0 and 10.7 deg off so), with its
     bars, how they overlap and its edge points. All are tried: two pins in line across
@@ -1028,7 +1028,6 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
     # Each bar's typical excess, not its peak: a C-arm's window clips the darkest pixels,
     # and where it clips part of one pin the other's peak is a third of it (processing
     # seed 28: 8.7 against 3.4, medians 3.0 and 2.5).
-    typical = np.zeros(count)
     if good.any():
         typical = _medians(excess, labels, good)
         if _join_in_line(labels, good, excess, typical):
@@ -1054,11 +1053,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
     fitted = [(_fit_bar(pixels[labels[ys, xs] == t]), pixels[labels[ys, xs] == t]) for t in shadows]
     least_length = 0.0 if expected_length_px is None else _PIN_LENGTH_SHARE * expected_length_px
     pair = _parallel_pair(fitted, widths, expected, least_length)
-    # Of the shadows that may hold both pins, the most attenuating is tried first: steel is
-    # more so than any bone (a processed plateau's band, as wide as a pin and longer than the
-    # pins in line, was split as them: processing seed 3, view 2).
-    by_steel = shadows[np.argsort(-typical[shadows], kind="stable")]
-    split = None if pair is not None else _split_one(labels, by_steel, edges, normals, widths,
+    split = None if pair is not None else _split_one(labels, shadows, edges, normals, widths,
                                                       least_length, config)
     if not isinstance(split, tuple) and least_length > 0:
         # The initial pose may foresee a far longer shadow than a pin seen nearly along its
@@ -1071,7 +1066,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
             # holds two pins whatever their length: steps are evidence, unlike a split in
             # the middle of a bar with none (the real tibia's seed 11 at level 3, view 1:
             # pins in line, 139 and 153 px long, foreseen 381).
-            stepped = _split_one(labels, by_steel, edges, normals, widths, _PIN_ELONGATION * widths.least,
+            stepped = _split_one(labels, shadows, edges, normals, widths, _PIN_ELONGATION * widths.least,
                                  config, stepped_only=True)
             split = stepped if isinstance(stepped, tuple) else split
     if pair is not None:
