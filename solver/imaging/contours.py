@@ -823,8 +823,9 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         mine[mine] = ~heads
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px, head_points)
         bar_widths = [_edge_width(bar, edges[mine]) for bar in bars]
+        stepped = overlap == "staggered" and all(map(widths.one_pin, bar_widths))
         if (float(np.mean(bar_widths)) <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length
-                and (not stepped_only or overlap == "staggered" and all(map(widths.one_pin, bar_widths)))):
+                and (stepped or not stepped_only)):
             return bars, overlap, edges[mine]
         whole = _fit_bar(edges[mine])
         whole_width = _edge_width(whole, edges[mine])

@@ -114,7 +114,6 @@ def linearised_attenuation(image: np.ndarray, valid: np.ndarray, sign: int) -> n
     return (-2.0 * np.log(np.maximum(s + floor, 0.5 * floor))).astype(np.float32)
 
 
-
 def frame_attenuation(image: np.ndarray, valid: np.ndarray, outside: float, sign: int
                       ) -> tuple[np.ndarray, str]:
     """The frame's attenuation and how its response was read: "linear" (``-log`` of the
