@@ -30,16 +30,22 @@ def _shadow(blocks: list[tuple[int, int, int, int]]) -> np.ndarray:
 _HEADED_IN_LINE = [(50, 550, 90, 110), (50, 90, 84, 116), (150, 190, 84, 116)]
 
 
-def test_a_head_standing_on_the_other_pins_shaft_does_not_cut_the_bar():
-    """Read as a step, the head cut pin A to the 100 px before it, shorter than a pin can
-    be, and the case was refused ("one bar a pin wide"). Without the head's sides the bar
-    is split as pins in line are, each part as long as a pin can be."""
+def _split_headed_in_line():
+    """The bars and overlap that ``_split_one`` makes of ``_HEADED_IN_LINE``."""
     labels = _shadow(_HEADED_IN_LINE)
     edges, normals = outline_with_normals(labels > 0, 10)
     widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
     split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
     assert isinstance(split, tuple)
     bars, overlap, _ = split
+    return bars, overlap
+
+
+def test_a_head_standing_on_the_other_pins_shaft_does_not_cut_the_bar():
+    """Read as a step, the head cut pin A to the 100 px before it, shorter than a pin can
+    be, and the case was refused ("one bar a pin wide"). Without the head's sides the bar
+    is split as pins in line are, each part as long as a pin can be."""
+    bars, overlap = _split_headed_in_line()
     assert overlap in ("coincident", "staggered")
     assert min(2.0 * bar.half_length for bar in bars) >= _LEAST_LENGTH_PX
 
@@ -70,12 +76,7 @@ def test_a_head_on_the_other_pins_shaft_is_where_that_pin_begins():
     head at the bar's end and B's on A's shaft, B reaches from its head to the bar's other
     end, and A, behind it, is as long (within the tenth kept for their difference). Split
     in the middle instead, each was cut to 250 px of its 400-500 (headed pins seed 3)."""
-    labels = _shadow(_HEADED_IN_LINE)
-    edges, normals = outline_with_normals(labels > 0, 10)
-    widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
-    split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
-    assert isinstance(split, tuple)
-    bars, _, _ = split
+    bars, _ = _split_headed_in_line()
     spans = sorted((float(b.centre[0] - abs(b.half_length * b.direction[0])),
                     float(b.centre[0] + abs(b.half_length * b.direction[0]))) for b in bars)
     (a_start, a_stop), (b_start, b_stop) = spans
