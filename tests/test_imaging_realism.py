@@ -548,6 +548,16 @@ def test_parallel_pins_seen_nearly_end_on_converge_and_are_paired(phantom_plan, 
     assert _labelled(frame.radiograph, found)
 
 
+def test_pins_seen_end_on_as_stubs_are_paired(phantom_plan, scene):
+    """Surgeon's views seed 24, view 1 (4 deg from AP): the pins cast pills 2.3 and 3.4
+    widths long, 27 deg apart, 401 and 231 px from their vanishing point. The shorter was
+    cut into a thinner piece and the pair was refused for unlike distances: neither pin was
+    found."""
+    frame, found = _retractors_pins(phantom_plan, scene, 24, 0, OperatingRoom.only("views"))
+    assert found.diagnostics["pins_overlap"] == "apart"
+    assert _labelled(frame.radiograph, found)
+
+
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_blade_pieces_that_converge_by_chance_are_not_taken_for_the_pins(phantom_plan, scene):
     """Operating-room seed 17, view 2: two pieces of retractor blades, pin-wide, 33 deg

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamtka.solver.imaging.contours import _fit_bar, _steel_level, _under_shutters
+from slamtka.solver.imaging.contours import _Bar, _converging, _fit_bar, _steel_level, _under_shutters
 from slamtka.solver.imaging.edges import outline_with_normals
 
 
@@ -53,3 +53,26 @@ def test_a_blade_seen_edge_on_does_not_set_the_level_of_steel():
     assert _steel_level(np.array([2.0, 1.9, 0.3, 0.25])) == 2.0
     assert _steel_level(np.array([2.0, 0.3, 0.25])) == 2.0  # the pins in one bar: bone stays out
     assert _steel_level(np.array([6.22, 1.22])) == 6.22
+
+
+def _pin_shadow(start_mm: np.ndarray, axis: np.ndarray, length_mm: float, width_px: float) -> _Bar:
+    """The bar a pin from ``start_mm`` along ``axis`` casts through a pinhole (f = 3000 px,
+    principal point 512, 512): its axis projected, a pin's width added for its end discs."""
+    ends = np.array([start_mm, start_mm + length_mm * axis])
+    px = 3000.0 * ends[:, :2] / ends[:, 2:] + 512.0
+    span = px[1] - px[0]
+    return _Bar(px.mean(axis=0), span / np.linalg.norm(span), 0.5 * (np.linalg.norm(span) + width_px),
+                0.5 * width_px)
+
+
+def test_parallel_pins_seen_nearly_end_on_point_at_one_vanishing_point_alike():
+    """Two parallel pins 50 mm apart, seen along 20 deg of their axis: their shadows point at
+    one vanishing point, each shaft the same share of its distance to it, while the
+    distances differ with where each pin lies across the beam (views seed 24, view 1: 401
+    and 231 px at the true pose, so a test of alike distances missed the pins)."""
+    axis = np.array([0.12, -0.06, 1.0]) / np.linalg.norm([0.12, -0.06, 1.0])  # 8 deg off the beam
+    pin_a = _pin_shadow(np.array([-60.0, 20.0, 700.0]), axis, 60.0, 22.0)
+    pin_b = _pin_shadow(np.array([-10.0, 20.0, 700.0]), axis, 60.0, 22.0)
+    assert _converging(pin_a, pin_b, 22.0) is not None
+    shorter = _pin_shadow(np.array([-10.0, 20.0, 700.0]), axis, 30.0, 22.0)  # not the pair's length
+    assert _converging(pin_a, shorter, 22.0) is None

@@ -461,17 +461,20 @@ def _side_wander(bar: _Bar, pixels: np.ndarray) -> float:
 
 
 def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
-                   expected: np.ndarray | None = None, least_length: float = 0.0
-                   ) -> tuple[int, int] | None:
+                   expected: np.ndarray | None = None, least_length: float = 0.0,
+                   converging: bool = False) -> tuple[int, int] | None:
     """The two shadows most alike in direction and width (the block's parallel pins), or
     None when no two are alike enough to be the pins. With ``expected`` pin centres (the
     initial pose's projection), a pair far from them costs more: a retractor blade seen
     edge-on is as straight as a pin, but not where the plan puts the pins. Shadows shorter
-    than ``least_length`` are no pin's (a bent blade's fold is as wide, but short)."""
+    than ``least_length`` are no pin's (a bent blade's fold is as wide, but short).
+    ``converging``: the two pins seen nearly end-on instead, pointing at their vanishing
+    point (:func:`_converging`), stubs among them."""
     best, best_cost = None, np.inf
     widths_px = [_robust_width(bar, points) for bar, points in fitted]
     long = [2.0 * bar.half_length >= least_length for bar, _ in fitted]
     straight = [_side_wander(bar, points) <= _PIN_SIDE_WANDER_PX for bar, points in fitted]
+    stub = [2.0 * bar.half_length < _PIN_ELONGATION * width for (bar, _), width in zip(fitted, widths_px)]
     where = None if expected is None else np.asarray(expected, float).reshape(2, 2)
     for i in range(len(fitted)):
         for j in range(i + 1, len(fitted)):
@@ -483,15 +486,17 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             if (ratio > _PAIR_MAX_WIDTH_RATIO
                     or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
-            if angle <= _PAIR_MAX_ANGLE_DEG:
+            if converging:
+                unlike = _converging(fitted[i][0], fitted[j][0], 0.5 * (widths_px[i] + widths_px[j]))
+                if unlike is None:
+                    continue
+                bent = 1.0 + unlike
+            elif angle <= _PAIR_MAX_ANGLE_DEG and not (stub[i] or stub[j]):
                 if not (straight[i] and straight[j]):
                     continue  # bands along a bone's edge, side by side, not pins
                 bent = angle / _PAIR_MAX_ANGLE_DEG
             else:
-                converging = _converging(fitted[i][0], fitted[j][0])
-                if converging is None:
-                    continue
-                bent = 1.0 + converging
+                continue
             cost = bent + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
             if where is not None:
                 a, b = fitted[i][0].centre, fitted[j][0].centre
@@ -507,20 +512,20 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
 # seen along 10-30 deg of their axis, two pins 50 mm apart are 30-40 deg from parallel on
 # the frame (operating-room seeds 8, 24: short shadows with heads). Such a pair is taken
 # when the two shadows point at one vanishing point beyond both, within this angle, and
-# are foreshortened alike: a shadow's length over its distance to the vanishing point is
-# l cos(a) / (z + l cos(a)) for a pin of length l at depth z seen at angle a to its axis,
-# small and the same for both pins of a block, side by side at one depth, so their
-# distances to it are alike too. Two blades' pieces were paired by the shares alone
-# (operating-room seeds 17 and 23: distances 1.7 and 2.5 times each other; the pins of
-# seed 8: 1.04).
+# are foreshortened alike. A pin from depth z along its axis d, of length l, casts a shaft
+# whose length over its far end's distance to the vanishing point is l d_z / (z + l d_z):
+# the same for both pins of a block, alike in length and depth (views seeds 17, 24, 26,
+# view 1: 0.14 and 0.14 at the true poses), while their distances to it are not (328 and
+# 452 px, 401 and 231: they depend on where each pin lies across the beam). The shaft is
+# the shadow less a pin's width (its end discs, seen nearly face-on, add about that).
 _CONVERGING_MAX_ANGLE_DEG = 45.0
-_CONVERGING_MAX_SHARE = 0.35  # a shadow's length over its distance to the vanishing point
-_CONVERGING_MAX_RATIO = 1.3  # between the two pins' shares, and their distances
+_CONVERGING_MAX_SHARE = 0.35  # a shaft's length over its distance to the vanishing point
+_CONVERGING_MAX_RATIO = 1.3  # between the two pins' shares
 
 
-def _converging(a: _Bar, b: _Bar) -> float | None:
-    """How unlike two parallel pins' shadows converging on their vanishing point the bars
-    are (0 alike, 1 at the limit), or None when they cannot be such a pair."""
+def _converging(a: _Bar, b: _Bar, width_px: float) -> float | None:
+    """How unlike two parallel pins' shadows of ``width_px`` converging on their vanishing
+    point the bars are (0 alike, 1 at the limit), or None when they cannot be such a pair."""
     cos = float(a.direction @ b.direction)
     if np.degrees(np.arccos(np.clip(abs(cos), 0.0, 1.0))) > _CONVERGING_MAX_ANGLE_DEG:
         return None
@@ -531,10 +536,10 @@ def _converging(a: _Bar, b: _Bar) -> float | None:
     to_a, to_b = -s * a.direction, -t * b.direction  # from the vanishing point to each centre
     if float(to_a @ to_b) <= 0.0:
         return None  # the shadows lie on either side of it: they diverge
-    distances = np.abs([s, t])
-    shares = 2.0 * np.array([a.half_length, b.half_length]) / distances
-    unlike = float(max(np.log(ratios.max() / ratios.min()) for ratios in (shares, distances))
-                   / np.log(_CONVERGING_MAX_RATIO))
+    halves = np.array([a.half_length, b.half_length])
+    shafts = np.maximum(2.0 * halves - width_px, 1.0)
+    shares = shafts / (np.abs([s, t]) + 0.5 * shafts)  # over its far end's distance
+    unlike = float(np.log(shares.max() / shares.min()) / np.log(_CONVERGING_MAX_RATIO))
     if shares.max() > _CONVERGING_MAX_SHARE or unlike > 1.0:
         return None
     return unlike
@@ -575,6 +580,11 @@ _PIN_LENGTH_SHARE = 0.4
 # than wide, filling this share of its rectangle. Retractor blades, collimator blades,
 # lead letters and a femur's end-on shaft are wider, shorter or not straight.
 _PIN_ELONGATION = 3.0
+# A pin seen nearly end-on casts a stub, a pill 1.5-3 times as long as wide (views seed 24,
+# view 1, 4 deg from AP: 2.3 and 3.4). Split as a crossed shadow, its straight piece came
+# out thinner than the pin (14 px of 22) and was not paired: a stub is a candidate of its
+# own, paired only as one of two converging pins (_converging), never as a parallel bar.
+_STUB_ELONGATION = 1.5
 _PIN_FILL = 0.7
 _PIN_UNION_WIDTH = 1.8  # two pins side by side: at most this many widths wide
 _PIN_GROW_TO = 0.8  # excess to which an unscattered steel shadow is grown
@@ -626,6 +636,17 @@ def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -
             and len(pixels) >= _PIN_FILL * width * length)
 
 
+def _stub_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
+    """Whether ``pixels`` (N, 2) are shaped like one pin's shadow seen nearly end-on: a
+    filled pill one pin wide, shorter than a bar."""
+    if len(pixels) < config.pin_min_area_px:
+        return False
+    bar = _fit_bar(pixels)
+    width, length = _robust_width(bar, pixels), 2.0 * bar.half_length
+    return (widths.one_pin(width) and _STUB_ELONGATION * width <= length < _PIN_ELONGATION * width
+            and len(pixels) >= _PIN_FILL * width * length)
+
+
 # A shadow lying this much under a collimator shutter is no pin's: a C-arm's edge enhancement
 # leaves a dark band along a shutter's edge, as straight and as wide as a pin (operating-room
 # seed 6, view 1: 782 px long, 21 px wide, taken for both pins while the pins were missed).
@@ -662,6 +683,26 @@ def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: Contou
     for label, pixels in _pixels_of(labels, np.arange(count) > 0).items():
         ok[label] = _bar_shaped(pixels, widths, config)
     return ok
+
+
+def _steel_stubs(stubs: list[np.ndarray], excess: np.ndarray, level: float | None) -> list[np.ndarray]:
+    """The ``stubs`` (pixels of each) whose typical excess is steel's, at ``level`` (the
+    bars'; with none, the strongest stubs' own)."""
+    if not stubs:
+        return stubs
+    typical = np.array([float(np.median(excess[p[:, 1].astype(int), p[:, 0].astype(int)])) for p in stubs])
+    level = _steel_level(typical) if level is None else level
+    return [pixels for pixels, value in zip(stubs, typical) if value >= _PIN_PEAK_SHARE * level]
+
+
+def _outline_edges(mask: np.ndarray, grad: tuple[np.ndarray, np.ndarray], config: ContourConfig
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Edge points (and normals) of the steel shadows of ``mask``, placed on ``grad`` (the
+    transmitted intensity's gradient)."""
+    points, normals = outline_with_normals(mask, 10)
+    edges, normals, _, _ = edges_along_normals(grad, points, normals, config.edge_search_px,
+                                                config.min_edge_strength)
+    return edges + config.pin_edge_offset_px * normals, normals
 
 
 def _pixels_of(labels: np.ndarray, chosen: np.ndarray) -> dict[int, np.ndarray]:
@@ -1025,8 +1066,14 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
     weak = ((excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)) | clipped
     count, labels, stats, _ = cv2.connectedComponentsWithStats(weak.astype(np.uint8), connectivity=8)
     good = _pin_like(labels, count, widths, config)
+    # Shadows shaped like a pin seen end-on, traced only if two of them (or one and a bar)
+    # converge as the pins (below); taken before _split_crossed cuts pieces out of them.
+    chosen = ~good & (stats[:, cv2.CC_STAT_AREA] >= config.pin_min_area_px) & ~_under_shutters(labels, count, shutters)
+    chosen[0] = False
+    stubs = [pixels for pixels in _pixels_of(labels, chosen).values() if _stub_shaped(pixels, widths, config)]
     count, good = _split_crossed(labels, stats, good, widths, config)
     good &= ~_under_shutters(labels, count, shutters)
+    level: float | None = None
     # Steel is the most attenuating: bars of bone (a cortex seen tangentially) are far fainter.
     # Each bar's typical excess, not its peak: a C-arm's window clips the darkest pixels,
     # and where it clips part of one pin the other's peak is a third of it (processing
@@ -1035,18 +1082,17 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
         typical = _medians(excess, labels, good)
         if _join_in_line(labels, good, excess, typical):
             typical = _medians(excess, labels, good)
-        good &= typical >= _PIN_PEAK_SHARE * _steel_level(typical[good])
+        level = _steel_level(typical[good])
+        good &= typical >= _PIN_PEAK_SHARE * level
+    stubs = _steel_stubs(stubs, excess, level)
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
-    points, normals = outline_with_normals(mask, 10)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
     transmission = cv2.GaussianBlur(np.exp(-(A - background)).astype(np.float32), (0, 0),
                                     config.smoothing_px)
     grad = gradient(-transmission)
-    edges, normals, _, _ = edges_along_normals(grad, points, normals, config.edge_search_px,
-                                                config.min_edge_strength)
-    edges = edges + config.pin_edge_offset_px * normals
-    if len(edges) < _MIN_PIN_EDGES:
+    edges, normals = _outline_edges(mask, grad, config)
+    if len(edges) < _MIN_PIN_EDGES and len(stubs) < 2:
         empty = np.zeros((0, 2))
         return [empty, empty], mask, {"pins_found": 0}
     ys, xs = np.nonzero(mask)
@@ -1072,6 +1118,18 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
             stepped = _split_one(labels, shadows, edges, normals, widths, _PIN_ELONGATION * widths.least,
                                  config, stepped_only=True)
             split = stepped if isinstance(stepped, tuple) else split
+    if pair is None and not (isinstance(split, tuple) and split[1] != "coincident"):
+        # Then the pins seen nearly end-on, before a split that nothing located (a blade
+        # halved: operating-room seed 8, view 1) but after one that steps or heads locate:
+        # two blades' pieces may point at one point too (operating-room seed 16, view 2,
+        # taken over the pins in line).
+        candidates = fitted + [(_fit_bar(pixels), pixels) for pixels in stubs]
+        pair = _parallel_pair(candidates, widths, expected, converging=True)
+        if pair is not None and max(pair) >= len(fitted):  # a stub is one of them: trace it
+            for i in pair:
+                mask[candidates[i][1][:, 1].astype(int), candidates[i][1][:, 0].astype(int)] = True
+            edges, normals = _outline_edges(mask, grad, config)
+        fitted = candidates
     if pair is not None:
         bars, overlap = [fitted[i][0] for i in pair], "apart"
     elif isinstance(split, tuple):
