@@ -76,3 +76,5 @@ def test_parallel_pins_seen_nearly_end_on_point_at_one_vanishing_point_alike():
     assert _converging(pin_a, pin_b, 22.0) is not None
     shorter = _pin_shadow(np.array([-10.0, 20.0, 700.0]), axis, 30.0, 22.0)  # not the pair's length
     assert _converging(pin_a, shorter, 22.0) is None
+    beside = _Bar(pin_a.centre + [0.0, 40.0], pin_a.direction, pin_a.half_length, pin_a.half_width)
+    assert _converging(pin_a, beside, 22.0) is None  # parallel on the frame: no vanishing point

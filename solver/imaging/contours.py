@@ -529,6 +529,8 @@ def _converging(a: _Bar, b: _Bar, width_px: float) -> float | None:
     cos = float(a.direction @ b.direction)
     if np.degrees(np.arccos(np.clip(abs(cos), 0.0, 1.0))) > _CONVERGING_MAX_ANGLE_DEG:
         return None
+    if abs(a.direction[0] * b.direction[1] - a.direction[1] * b.direction[0]) < 1e-6:
+        return None  # parallel on the frame: no vanishing point to point at
     # Where the axes meet: a.centre + s a.direction = b.centre + t b.direction.
     s, t = np.linalg.solve(np.column_stack([a.direction, -b.direction]), b.centre - a.centre)
     if abs(s) <= a.half_length or abs(t) <= b.half_length:
