@@ -66,7 +66,7 @@ def _pin_shadow(start_mm: np.ndarray, axis: np.ndarray, length_mm: float, width_
 
 
 def test_parallel_pins_seen_nearly_end_on_point_at_one_vanishing_point_alike():
-    """Two parallel pins 50 mm apart, seen along 20 deg of their axis: their shadows point at
+    """Two parallel pins 50 mm apart, seen 8 deg off their axis: their shadows point at
     one vanishing point, each shaft the same share of its distance to it, while the
     distances differ with where each pin lies across the beam (views seed 24, view 1: 401
     and 231 px at the true pose, so a test of alike distances missed the pins)."""
