@@ -626,27 +626,28 @@ class _PinWidths:
         return self.least_behind < width <= self.union_most
 
 
-def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
-    """Whether ``pixels`` (N, 2) are shaped like a pin's shadow (or two pins' overlap)."""
+def _shape_of(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> str | None:
+    """What ``pixels`` (N, 2) are shaped like: "bar" (a pin's shadow, or two pins' overlap),
+    "stub" (one pin's seen nearly end-on: a filled pill one pin wide, shorter than a bar)
+    or None."""
     if len(pixels) < config.pin_min_area_px:
-        return False
+        return None
     bar = _fit_bar(pixels)
     # Across a filled bar offsets are uniform: four times their median is its width,
     # whatever a head on its end adds.
     width, length = _robust_width(bar, pixels), 2.0 * bar.half_length
-    return (widths.least <= width <= widths.union_most and length >= _PIN_ELONGATION * width
-            and len(pixels) >= _PIN_FILL * width * length)
+    if len(pixels) < _PIN_FILL * width * length:
+        return None
+    if widths.least <= width <= widths.union_most and length >= _PIN_ELONGATION * width:
+        return "bar"
+    if widths.one_pin(width) and length >= _STUB_ELONGATION * width:
+        return "stub"
+    return None
 
 
-def _stub_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
-    """Whether ``pixels`` (N, 2) are shaped like one pin's shadow seen nearly end-on: a
-    filled pill one pin wide, shorter than a bar."""
-    if len(pixels) < config.pin_min_area_px:
-        return False
-    bar = _fit_bar(pixels)
-    width, length = _robust_width(bar, pixels), 2.0 * bar.half_length
-    return (widths.one_pin(width) and _STUB_ELONGATION * width <= length < _PIN_ELONGATION * width
-            and len(pixels) >= _PIN_FILL * width * length)
+def _bar_shaped(pixels: np.ndarray, widths: _PinWidths, config: ContourConfig) -> bool:
+    """Whether ``pixels`` (N, 2) are shaped like a pin's shadow (or two pins' overlap)."""
+    return _shape_of(pixels, widths, config) == "bar"
 
 
 # A shadow lying this much under a collimator shutter is no pin's: a C-arm's edge enhancement
@@ -679,12 +680,16 @@ def _steel_level(levels: np.ndarray) -> float:
 
 
 def _pin_like(labels: np.ndarray, count: int, widths: _PinWidths, config: ContourConfig
-              ) -> np.ndarray:
-    """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap)."""
-    ok = np.zeros(count, bool)
+              ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Which components of ``labels`` are shaped like a pin's shadow (or two pins' overlap),
+    and the pixels of each shaped like a stub (:func:`_shape_of`)."""
+    ok, stubs = np.zeros(count, bool), {}
     for label, pixels in _pixels_of(labels, np.arange(count) > 0).items():
-        ok[label] = _bar_shaped(pixels, widths, config)
-    return ok
+        shape = _shape_of(pixels, widths, config)
+        ok[label] = shape == "bar"
+        if shape == "stub":
+            stubs[label] = pixels
+    return ok, stubs
 
 
 def _steel_stubs(stubs: list[np.ndarray], excess: np.ndarray, level: float | None) -> list[np.ndarray]:
@@ -1067,12 +1072,11 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
     reach = cv2.dilate(peak[seeds] * strong, np.ones((31, 31), np.uint8))
     weak = ((excess > np.minimum(0.5 * reach, _PIN_GROW_TO)) & (reach > 0)) | clipped
     count, labels, stats, _ = cv2.connectedComponentsWithStats(weak.astype(np.uint8), connectivity=8)
-    good = _pin_like(labels, count, widths, config)
+    good, stub_pixels = _pin_like(labels, count, widths, config)
     # Shadows shaped like a pin seen end-on, traced only if two of them (or one and a bar)
     # converge as the pins (below); taken before _split_crossed cuts pieces out of them.
-    chosen = ~good & (stats[:, cv2.CC_STAT_AREA] >= config.pin_min_area_px) & ~_under_shutters(labels, count, shutters)
-    chosen[0] = False
-    stubs = [pixels for pixels in _pixels_of(labels, chosen).values() if _stub_shaped(pixels, widths, config)]
+    under = _under_shutters(labels, count, shutters)
+    stubs = [pixels for label, pixels in stub_pixels.items() if not under[label]]
     count, good = _split_crossed(labels, stats, good, widths, config)
     good &= ~_under_shutters(labels, count, shutters)
     level: float | None = None
