@@ -692,6 +692,29 @@ def test_headed_pins_pass_as_straight_bars(phantom_plan, scene):
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
+@pytest.mark.parametrize("nuisance, seed, view, overlap", [(None, 25, 1, "apart"), ("retractors", 12, 1, "apart"),
+                                                           ("headed_pins", 7, 1, "apart"),
+                                                           ("headed_pins", 16, 0, "staggered")])
+def test_pins_touching_side_by_side_or_headed_in_line_are_told_apart(phantom_plan, scene, nuisance, seed,
+                                                                      view, overlap):
+    """View 2 of idealised seed 25 and retractors seed 12: the pins touch side by side in a
+    slit a pixel or two wide; headed pins seed 7: 8 px apart, one's head touching the
+    other's shaft. One shadow notched by the slit, it was split as pins in line, one pin
+    cut to half its length or less. Headed pins seed 16, view 1: pins in line, offset
+    across; the second pin's head stands out of one side of their shadow only, the
+    first's (at its end) out of its own side by less than the second pin's side lies
+    beyond it. Both heads were read as steps and the first pin cut at the second's head: a
+    third of its true outline was found (now three fifths: its shaft's, not its head's)."""
+    room = OperatingRoom.only(nuisance, MESHES) if nuisance else OperatingRoom()
+    frame, found = _retractors_pins(phantom_plan, scene, seed, view, room)
+    assert found.diagnostics["pins_overlap"] == overlap
+    assert _labelled(frame.radiograph, found)
+    for label in ("pin1", "pin2"):
+        truth = frame.radiograph.silhouettes[label]
+        assert np.mean(cKDTree(getattr(found, label)).query(truth)[0] <= 3.0) > 0.5
+
+
+@pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 @pytest.mark.parametrize("seed", [22, 27])
 def test_headed_pins_in_line_are_measured(seed):
     """Headed pins seeds 22 and 27: in one view the pins lie in line, one overlapping the

@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
-from slamtka.solver.imaging.contours import _Bar, _converging, _fit_bar, _steel_level, _under_shutters
+from slamtka.solver.imaging.contours import (
+    ContourConfig,
+    _Bar,
+    _converging,
+    _fit_bar,
+    _PinWidths,
+    _split_notched,
+    _steel_level,
+    _under_shutters,
+)
 from slamtka.solver.imaging.edges import outline_with_normals
 
 
@@ -78,3 +88,46 @@ def test_parallel_pins_seen_nearly_end_on_point_at_one_vanishing_point_alike():
     assert _converging(pin_a, shorter, 22.0) is None
     beside = _Bar(pin_a.centre + [0.0, 40.0], pin_a.direction, pin_a.half_length, pin_a.half_width)
     assert _converging(pin_a, beside, 22.0) is None  # parallel on the frame: no vanishing point
+
+
+def _touching_pins(angle_deg: float) -> np.ndarray:
+    """A label image, shadow 1: pin A (20 px wide, x = 50-450) with its head (36 px across)
+    at x = 410-450, and pin B, 20 px wide and 400 px long, at ``angle_deg`` to A, from A's
+    head's lower side (6 px below A's side where parallel). Shadow 2 lies apart."""
+    labels = np.zeros((260, 700), np.int32)
+    labels[90:110, 50:450] = 1
+    labels[82:118, 410:450] = 1
+    if angle_deg == 0.0:
+        labels[116:136, 150:550] = 1
+    else:
+        a = np.radians(angle_deg)
+        end = np.array([430.0, 126.0])
+        start = end - 380.0 * np.array([np.cos(a), -np.sin(a)])
+        b = np.zeros(labels.shape, np.uint8)
+        cv2.line(b, (int(start[0]), int(start[1])), (int(end[0]), int(end[1])), 1, 20)
+        labels[b > 0] = 1
+    labels[200:220, 100:600] = 2
+    return labels
+
+
+def test_two_pins_side_by_side_touching_at_a_head_are_cut_apart():
+    """Headed pins seed 7, view 2: A's head touched B's shaft, and the one shadow, notched by
+    the slit between them, was split as two pins in line, one cut to a third of its length.
+    Cut along the notch, each pin is a shadow of its own, whole."""
+    labels = _touching_pins(0.0)
+    widths = _PinWidths.of(ContourConfig(), 20.0)
+    count, good = _split_notched(labels, labels > 0, 3, np.array([False, True, True]), widths, ContourConfig())
+    assert count == 4 and good.tolist() == [False, True, True, True]
+    bars = sorted((_fit_bar(_pixels(labels == k)) for k in (1, 3)), key=lambda bar: bar.centre[1])
+    assert np.allclose(bars[0].centre, [250, 100], atol=6) and abs(2 * bars[0].half_length - 400) < 10
+    assert np.allclose(bars[1].centre, [350, 126], atol=6) and abs(2 * bars[1].half_length - 400) < 10
+    assert (labels == 2).sum() == 20 * 500  # the other shadow is left as it was
+
+
+def test_two_pins_at_an_angle_touching_are_not_cut():
+    """A wedge between two bars 30 deg apart is no slit between parallel pins."""
+    labels = _touching_pins(30.0)
+    before = labels.copy()
+    widths = _PinWidths.of(ContourConfig(), 20.0)
+    count, _ = _split_notched(labels, labels > 0, 3, np.array([False, True, True]), widths, ContourConfig())
+    assert count == 3 and np.array_equal(labels, before)

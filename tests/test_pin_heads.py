@@ -9,6 +9,7 @@ from slamtka.solver.imaging.contours import (
     _head_sides,
     _PinWidths,
     _split_one,
+    _split_union,
 )
 from slamtka.solver.imaging.edges import outline_with_normals
 
@@ -83,3 +84,44 @@ def test_a_head_on_the_other_pins_shaft_is_where_that_pin_begins():
     assert a_start < 60 and b_stop > 540
     assert 140 < b_start < 200
     assert a_stop - a_start >= 0.85 * (b_stop - b_start)
+
+
+def test_a_head_is_read_against_its_own_sides_level():
+    """Two headed pins in line, B offset 12 px across A. A's head, at the union's end, stands
+    out of A's lower side but not of B's, further out: read against one level for the
+    whole side it was no head, and a step (headed pins seed 16, view 1: the first pin was
+    cut at the second's head). Against the side's level beside it, it is. B's head stands
+    out of the union's lower side only (A hides its top): it is where B begins, a step, and
+    stays on the sides (left out, the step was placed mid-way across it: seed 9, view 1)."""
+    a_shaft, a_head = (50, 450, 90, 110), (50, 90, 83, 117)
+    b_shaft, b_head = (300, 650, 102, 122), (300, 340, 95, 129)
+    labels = _shadow([a_shaft, a_head, b_shaft, b_head])
+    edges, normals = outline_with_normals(labels > 0, 10)
+    heads = _head_sides(edges, normals)
+    x, y = edges[:, 0], edges[:, 1]
+    assert heads[(x > 60) & (x < 80) & (y < 90)].any() and heads[(x > 60) & (x < 80) & (y > 110)].any()
+    assert not heads[x > 100].any()
+
+
+def test_a_step_and_a_head_each_locate_one_pins_inner_end():
+    """Two headed pins in line, heads on the right: A from x = 100 to its head at 360-400, on
+    B's shaft; B from x = 300 to its head at 660-700. B's shadow is 1.5 px wider on top, so
+    that side steps where B begins; the lower sides coincide. The step says where B begins,
+    A's head where A ends: inferred from B's length instead, A ended at the step, 100 px
+    short of its head (headed pins seed 16, view 2)."""
+    s = np.arange(100.0, 701.0)
+    top = np.where(s < 300, 10.0, 11.5)
+    sides = np.concatenate([np.column_stack([s, 200 - top]), np.column_stack([s, np.full_like(s, 210.0)])])
+    up = np.tile([0.0, -1.0], (len(s), 1))
+    normals = np.concatenate([up, -up])
+    heads = np.concatenate([np.column_stack([s, np.full_like(s, y)])[in_head]
+                            for in_head in ((s >= 360) & (s <= 400), (s >= 660) & (s <= 700))
+                            for y in (184.0, 216.0)])
+    on_shaft = ~(((s >= 360) & (s <= 400)) | (s >= 660))
+    keep = np.concatenate([on_shaft, on_shaft])
+    bars, overlap = _split_union(sides[keep], normals[keep], 1.0, heads)
+    assert overlap == "staggered"
+    spans = sorted((float(b.centre[0] - b.half_length), float(b.centre[0] + b.half_length)) for b in bars)
+    (a_start, a_stop), (b_start, b_stop) = spans
+    assert abs(a_start - 100) < 10 and abs(a_stop - 380) < 25
+    assert abs(b_start - 300) < 10 and b_stop > 640

@@ -52,6 +52,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from slamtka.solver.camera import Camera
 from slamtka.solver.imaging.edges import (
@@ -274,9 +275,10 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float,
     over the overlap, so the step is where the other pin ends or the outward one begins; the
     overlap's other end follows from the two pins' equal projected length (one model,
     parallel), kept ``_LENGTH_SHARE`` short of it for the few per cent the two differ.
-    A side without a step is shared by both pins over their spans. Where neither side steps,
-    the sides of pin heads (``heads``, left out of ``edges``) may still say where the pins
-    lie (:func:`_spans_from_heads`).
+    A side without a step is shared by both pins over their spans. The sides of pin heads
+    (``heads``, left out of ``edges``) may say where the pins lie (:func:`_spans_from_heads`):
+    where neither side steps, both pins' spans; where one does, the span of the pin whose
+    inner end the step does not locate.
     """
     centre = edges.mean(axis=0)
     _, vectors = np.linalg.eigh(np.cov((edges - centre).T))
@@ -301,8 +303,8 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float,
             outward.append(0.0)
     known = [at for at in steps if at is not None]
     overlap = "staggered"
-    by_heads = None if known else _spans_from_heads((heads - centre) @ d, ends, width)
-    if by_heads is not None:
+    by_heads = _spans_from_heads((heads - centre) @ d, ends, width)
+    if not known and by_heads is not None:
         spans = by_heads
     elif not known:
         # The edges coincide. Two pins of one model project to nearly equal lengths, so the
@@ -311,11 +313,17 @@ def _split_union(edges: np.ndarray, normals: np.ndarray, min_step: float,
         steps, overlap = [middle, middle], "coincident"
         spans = ((ends[0], middle), (middle, ends[1]))
     elif len(known) == 1:
+        # The step locates one pin's inner end; the other's is where the heads put it, else
+        # inferred from the pins' alike lengths (headed pins seed 16, view 2: a step where
+        # the second pin's tip leaves the first's shadow, the first pin's head on the
+        # second's shaft; inferred, the first pin ended 34 px short of its head).
         k, at = (0 if steps[0] is not None else 1), known[0]
         if outward[k] > 0:  # the second pin is outward: it begins here
-            spans = ((ends[0], max(at, ends[0] + _LENGTH_SHARE * (ends[1] - at))), (at, ends[1]))
+            end = by_heads[0][1] if by_heads is not None else ends[0] + _LENGTH_SHARE * (ends[1] - at)
+            spans = ((ends[0], max(at, end)), (at, ends[1]))
         else:  # the first pin is outward: it ends here
-            spans = ((ends[0], at), (min(at, ends[1] - _LENGTH_SHARE * (at - ends[0])), ends[1]))
+            begin = by_heads[1][0] if by_heads is not None else ends[1] - _LENGTH_SHARE * (at - ends[0])
+            spans = ((ends[0], at), (min(at, begin), ends[1]))
     else:
         spans = ((ends[0], max(known)), (min(known), ends[1]))
     # On a side with a step a pin owns its part of that side; without one, the two pins'
@@ -362,19 +370,32 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Which of one shadow's edge points lie on the sides of a pin's head (True).
 
     A head (the plan's pin model has none) stands out of *both* sides of the shaft at once,
-    over a short run of its length, and each side comes back to where it was on either
-    end. Where two pins in line overlap, offset across, the union widens over a short run
-    too (real surgeon's views seed 10, view 1: 70 px), but each side steps once and stays
-    out: one side does not come back, and that step is the split's evidence. A head left
-    on the sides is read as such a step: headed pins seed 3, view 1 (two pins in line, the
-    second pin's head on the first pin's shaft) was split there and its first pin cut to a
-    third of its length.
+    over a short run of its length, and each side comes back to where it was on either end
+    (or on its one end, at the shadow's end): a bump of each side, shorter than
+    ``_HEAD_MOST_WIDTHS`` widths and at least the margin above that side's own level on
+    both of its neighbours. Where two pins in line overlap, offset across, the union
+    widens over a short run too (real surgeon's views seed 10, view 1: 70 px), but each
+    side steps once and stays out: no bump, and that step is the split's evidence. A head
+    left on the sides is read as such a step: headed pins seed 3, view 1 (two pins in line,
+    the second pin's head on the first pin's shaft) was split there and its first pin cut
+    to a third of its length.
+
+    Each side's level is its own on either end of the bump, not one for the whole side:
+    with the pins offset across, a head at the union's end stands out of its own pin's
+    side but hardly of the other pin's, further out (headed pins seed 16, view 1: read as
+    a step, the first pin was cut at the second's head, half its length). A head standing
+    out of one side only (the second pin's, offset across) is where that pin begins, a
+    step: it is left on the sides (left out, the step was placed mid-way across it, 28 px
+    into the pin: headed pins seed 9, view 1).
     """
     flagged = np.zeros(len(edges), bool)
     bar = _fit_bar(edges)
     s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ bar.across
-    long = np.abs(normals @ bar.across) > 0.9
-    top, bottom = long & (o > 0), long & (o < 0)
+    # The long sides, facing out: a notch's or a slit's inner sides are no head's (real
+    # tibia's headed pins seed 6, view 2: mixed into one side's level, they made a bump of
+    # it over the first pin's head, and the head was taken for both sides' and cut out).
+    facing = normals @ bar.across
+    top, bottom = (facing > 0.9) & (o > 0), (facing < -0.9) & (o < 0)
     if np.count_nonzero(top) < _MIN_PIN_EDGES or np.count_nonzero(bottom) < _MIN_PIN_EDGES:
         return flagged
     width = float(np.median(o[top]) - np.median(o[bottom]))
@@ -382,26 +403,18 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     step = max(0.5 * width, 1.0)
     bins = ((s - s.min()) / step).astype(int)
     count = int(bins.max()) + 1
-    # Each side's level in each slice, outward positive (NaN where a slice has none).
-    levels = []
+    # An opening of each side's level (outward positive) by a run longer than a head
+    # removes its bumps and keeps its steps: what the side is where it has no head.
+    window = int(_HEAD_MOST_WIDTHS * width / step) + 1
+    head_bins = np.ones(count, bool)
     for side, sign in ((top, 1.0), (bottom, -1.0)):
         total = np.bincount(bins[side], minlength=count)
-        level = np.bincount(bins[side], sign * o[side], minlength=count) / np.maximum(total, 1)
-        levels.append(np.where(total > 0, level, np.nan))
-    typical = [float(np.nanmedian(level)) for level in levels]
-    both = (levels[0] > typical[0] + margin) & (levels[1] > typical[1] + margin)
-    longest = int(_HEAD_MOST_WIDTHS * width / step)
-    reach = int(np.ceil(2.0 * width / step))  # slices read on either end of a run
-    head_bins = np.zeros(count, bool)
-    bounds = np.flatnonzero(np.diff(np.concatenate([[0], both.astype(np.int8), [0]])))
-    for start, stop in zip(bounds[::2], bounds[1::2]):
-        run = slice(start, stop)
-        ends = (slice(max(start - reach, 0), start), slice(stop, min(stop + reach, count)))
-        comes_back = [np.nanmedian(level[run]) > np.nanmedian(level[end]) + margin
-                      for level in levels for end in ends if np.isfinite(level[end]).any()]
-        if stop - start <= longest and comes_back and all(comes_back):
-            head_bins[run] = True
-    return long & head_bins[bins]
+        seen = total > 0
+        level = np.bincount(bins[side], sign * o[side], minlength=count)[seen] / total[seen]
+        level = np.interp(np.arange(count), np.flatnonzero(seen), level)
+        shaft = ndimage.grey_opening(level, size=window, mode="constant", cval=-np.inf)
+        head_bins &= level > shaft + margin
+    return (top | bottom) & head_bins[bins]
 
 
 _PIN_EDGE_REACH_PX = 6.0  # an edge this far from both pins' bars belongs to another shadow
@@ -801,6 +814,64 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
     return count + len(added), np.concatenate([good, np.asarray(added, bool)])
 
 
+def _split_notched(labels: np.ndarray, mask: np.ndarray, count: int, good: np.ndarray,
+                   widths: _PinWidths, config: ContourConfig) -> tuple[int, np.ndarray]:
+    """Relabel, in place, each pin-like shadow of ``mask`` that is two parallel bars joined
+    at one end as two shadows (the cut left out of ``mask``); returns the new count of
+    labels and which are pin-like.
+
+    Two pins side by side a few px apart are two shadows, but where one's head (or the
+    blur of their edges) touches the other's shaft they are one, notched from the other
+    end by the slit between them. Read as two pins overlapping in line, its outline has
+    four long sides where the split expects two (headed pins seed 7, view 2: one pin cut
+    to 130 of its 380 px; idealised seed 25, view 2: pins touching in a slit a pixel or
+    two wide, one cut to half its length). The notch is what a closing by a pin's least
+    width adds to the shadow; where it is as long as a pin must be and runs along the
+    shadow, the shadow is cut along the notch's axis, and taken as two where both sides
+    are bars. A slit shows only once the mask is opened: ``mask`` is."""
+    good = good.copy()
+    added: list[bool] = []
+    size = int(widths.least) | 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    least_length = _PIN_ELONGATION * widths.least
+    head_length = 2.0 * widths.most  # what joins them: a head at most (3 foreseen widths long)
+    parallel = np.cos(np.radians(_PAIR_MAX_ANGLE_DEG))
+    h, w = labels.shape
+    for label, pixels in _pixels_of(labels, good).items():
+        (x0, y0), (x1, y1) = pixels.min(axis=0).astype(int) - size, pixels.max(axis=0).astype(int) + size + 1
+        x0, y0 = max(x0, 0), max(y0, 0)
+        window = labels[y0:min(y1, h), x0:min(x1, w)]
+        shown = mask[y0:min(y1, h), x0:min(x1, w)]
+        shadow = ((window == label) & shown).astype(np.uint8)
+        notch = (cv2.morphologyEx(shadow, cv2.MORPH_CLOSE, disk) > 0) & (shadow == 0)
+        found, notches, stats, _ = cv2.connectedComponentsWithStats(notch.astype(np.uint8), connectivity=8)
+        largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])) if found > 1 else 0
+        if not largest or stats[largest, cv2.CC_STAT_AREA] < least_length:  # a pixel a px at least
+            continue
+        ys, xs = np.nonzero(notches == largest)
+        slit = _fit_bar(np.column_stack([xs, ys]).astype(float))
+        bar = _fit_bar(pixels)
+        if 2.0 * slit.half_length < least_length or abs(slit.direction @ bar.direction) < parallel:
+            continue
+        # The cut: the notch's axis, on through what joins the two bars (a head at most).
+        ys, xs = np.nonzero(shadow)
+        offset = np.column_stack([xs, ys]) - slit.centre
+        cut = ((np.abs(offset @ slit.across) <= 1.0)
+               & (np.abs(offset @ slit.direction) <= slit.half_length + head_length))
+        shadow[ys[cut], xs[cut]] = 0
+        found, parts, stats, _ = cv2.connectedComponentsWithStats(shadow, connectivity=4)
+        if found < 3:
+            continue
+        first, second = 1 + np.argsort(stats[1:, cv2.CC_STAT_AREA])[::-1][:2]
+        if not all(_bar_shaped(np.argwhere(parts == part)[:, ::-1].astype(float), widths, config)
+                   for part in (first, second)):
+            continue
+        shown[(window == label) & (parts != first) & (parts != second)] = False  # the cut is no one's
+        window[parts == second] = count + len(added)
+        added.append(True)
+    return count + len(added), np.concatenate([good, np.asarray(added, bool)])
+
+
 def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.ndarray:
     """What the frame would show without its pins: ``A``'s 100-px median (the tissue and
     bone around a pin), and on and beside broad metal ``A`` opened (half size) by a disk
@@ -1092,6 +1163,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
         good &= typical >= _PIN_PEAK_SHARE * level
     stubs = _steel_stubs(stubs, excess, level)
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
+    count, good = _split_notched(labels, mask, count, good, widths, config)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
     transmission = cv2.GaussianBlur(np.exp(-(A - background)).astype(np.float32), (0, 0),
