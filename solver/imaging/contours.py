@@ -388,7 +388,6 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     step: it is left on the sides (left out, the step was placed mid-way across it, 28 px
     into the pin: headed pins seed 9, view 1).
     """
-    flagged = np.zeros(len(edges), bool)
     bar = _fit_bar(edges)
     s, o = (edges - bar.centre) @ bar.direction, (edges - bar.centre) @ bar.across
     # The long sides, facing out: a notch's or a slit's inner sides are no head's (real
@@ -397,7 +396,7 @@ def _head_sides(edges: np.ndarray, normals: np.ndarray) -> np.ndarray:
     facing = normals @ bar.across
     top, bottom = (facing > 0.9) & (o > 0), (facing < -0.9) & (o < 0)
     if np.count_nonzero(top) < _MIN_PIN_EDGES or np.count_nonzero(bottom) < _MIN_PIN_EDGES:
-        return flagged
+        return np.zeros(len(edges), bool)
     width = float(np.median(o[top]) - np.median(o[bottom]))
     margin = max(_HEAD_MARGIN_PX, _HEAD_MARGIN_SHARE * width)
     step = max(0.5 * width, 1.0)
