@@ -814,10 +814,10 @@ def _split_crossed(labels: np.ndarray, stats: np.ndarray, good: np.ndarray, widt
 
 
 def _split_notched(labels: np.ndarray, mask: np.ndarray, count: int, good: np.ndarray,
-                   widths: _PinWidths, config: ContourConfig) -> tuple[int, np.ndarray]:
-    """Relabel, in place, each pin-like shadow of ``mask`` that is two parallel bars joined
-    at one end as two shadows (the cut left out of ``mask``); returns the new count of
-    labels and which are pin-like.
+                   widths: _PinWidths, config: ContourConfig) -> int:
+    """Relabel, in place, each pin-like (``good``) shadow of ``mask`` that is two parallel
+    bars joined at one end as two shadows (the cut left out of ``mask``); returns the new
+    count of labels.
 
     Two pins side by side a few px apart are two shadows, but where one's head (or the
     blur of their edges) touches the other's shaft they are one, notched from the other
@@ -828,8 +828,6 @@ def _split_notched(labels: np.ndarray, mask: np.ndarray, count: int, good: np.nd
     width adds to the shadow; where it is as long as a pin must be and runs along the
     shadow, the shadow is cut along the notch's axis, and taken as two where both sides
     are bars. A slit shows only once the mask is opened: ``mask`` is."""
-    good = good.copy()
-    added: list[bool] = []
     size = int(widths.least) | 1
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
     least_length = _PIN_ELONGATION * widths.least
@@ -866,9 +864,9 @@ def _split_notched(labels: np.ndarray, mask: np.ndarray, count: int, good: np.nd
                    for part in (first, second)):
             continue
         shown[(window == label) & (parts != first) & (parts != second)] = False  # the cut is no one's
-        window[parts == second] = count + len(added)
-        added.append(True)
-    return count + len(added), np.concatenate([good, np.asarray(added, bool)])
+        window[parts == second] = count
+        count += 1
+    return count
 
 
 def _below_pins(A: np.ndarray, broad: np.ndarray, config: ContourConfig) -> np.ndarray:
@@ -1162,7 +1160,7 @@ def _pins(A: np.ndarray, valid: np.ndarray, broad: np.ndarray, shutters: np.ndar
         good &= typical >= _PIN_PEAK_SHARE * level
     stubs = _steel_stubs(stubs, excess, level)
     mask = cv2.morphologyEx(good[labels].astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
-    count, good = _split_notched(labels, mask, count, good, widths, config)
+    count = _split_notched(labels, mask, count, good, widths, config)
     # Steel is so opaque that log-attenuation bends its blurred edge inwards: the edge is
     # placed on the transmitted intensity instead, where it is a blurred step.
     transmission = cv2.GaussianBlur(np.exp(-(A - background)).astype(np.float32), (0, 0),
