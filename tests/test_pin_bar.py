@@ -10,6 +10,7 @@ from slamtka.solver.imaging.contours import (
     _Bar,
     _converging,
     _fit_bar,
+    _parallel_pair,
     _PinWidths,
     _split_notched,
     _steel_level,
@@ -53,6 +54,29 @@ def test_a_shadow_mostly_under_a_shutter_is_no_pin_candidate():
     shutter = np.zeros(labels.shape, bool)
     shutter[:, :30] = True
     assert _under_shutters(labels, 3, shutter)[1:].tolist() == [True, False]
+
+
+def test_two_bars_further_apart_than_a_blocks_pins_are_not_the_pair():
+    """Operating-room seed 4, view 1 (AP): two blades seen edge-on either side of the
+    plateau, parallel and a pin wide, 26 widths apart, were taken for the pins; a block's
+    pins lie at most some 11 widths apart across. Pins in line stay a pair however far
+    apart along their axis their centres lie."""
+    widths = _PinWidths.of(ContourConfig(), 22.0)
+
+    def bar_at(x: float, y: float, vertical: bool) -> tuple[_Bar, np.ndarray]:
+        mask = np.zeros((900, 1400), bool)
+        if vertical:
+            mask[int(y) - 130:int(y) + 130, int(x) - 11:int(x) + 11] = True
+        else:
+            mask[int(y) - 11:int(y) + 11, int(x) - 130:int(x) + 130] = True
+        return _fit_bar(_pixels(mask)), _pixels(mask)
+
+    blades = [bar_at(200.0, 400.0, True), bar_at(780.0, 400.0, True)]
+    assert _parallel_pair(blades, widths) is None
+    near = [bar_at(200.0, 400.0, True), bar_at(420.0, 400.0, True)]  # 10 widths apart
+    assert _parallel_pair(near, widths) == (0, 1)
+    in_line = [bar_at(300.0, 400.0, False), bar_at(1000.0, 404.0, False)]  # 700 px along
+    assert _parallel_pair(in_line, widths) == (0, 1)
 
 
 def test_a_blade_seen_edge_on_does_not_set_the_level_of_steel():

@@ -498,8 +498,14 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             if (ratio > _PAIR_MAX_WIDTH_RATIO
                     or not (widths.one_pin(widths_px[i]) and widths.one_pin(widths_px[j]))):
                 continue
+            a, b = fitted[i][0], fitted[j][0]
+            # Across for parallel bars (pins in line lie far apart along), between the
+            # centres for converging ones (a stub's axis says little).
+            apart = np.linalg.norm(b.centre - a.centre) if converging else abs((b.centre - a.centre) @ a.across)
+            if apart > widths.pair_apart_most:
+                continue
             if converging:
-                unlike = _converging(fitted[i][0], fitted[j][0], 0.5 * (widths_px[i] + widths_px[j]))
+                unlike = _converging(a, b, 0.5 * (widths_px[i] + widths_px[j]))
                 if unlike is None:
                     continue
                 bent = 1.0 + unlike
@@ -511,9 +517,8 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
                 continue
             cost = bent + np.log(ratio) / np.log(_PAIR_MAX_WIDTH_RATIO)
             if where is not None:
-                a, b = fitted[i][0].centre, fitted[j][0].centre
-                off = min(np.linalg.norm(a - where[0]) + np.linalg.norm(b - where[1]),
-                          np.linalg.norm(a - where[1]) + np.linalg.norm(b - where[0]))
+                off = min(np.linalg.norm(a.centre - where[0]) + np.linalg.norm(b.centre - where[1]),
+                          np.linalg.norm(a.centre - where[1]) + np.linalg.norm(b.centre - where[0]))
                 cost += 0.5 * off / _EXPECTED_PIN_SPREAD_PX
             if cost < best_cost:
                 best, best_cost = (i, j), cost
@@ -612,6 +617,14 @@ _PIN_PEAK_SHARE = 0.5  # of the strongest bar's median excess, that another bar 
 # behind the other only when wider than the fourth share: one pin's shadow, its partner
 # missed, must not be fitted as both (each pin's line would then lie in that bar's plane).
 _EXPECTED_WIDTH_SHARES = (0.65, 1.5, 2.1, 1.2)
+# A block's two pins lie 20-40 mm apart (the simulator's range; a block's holes are rarely
+# 50 mm apart), in the tibia: at the true poses of 720 views (both models; idealised,
+# surgeon's and operating-room seeds 0-59) their shadows' axes lay at most 11 pin widths
+# apart across, and their centres 12.6. Two shadows further apart than this many widths
+# are not the pair (18 widths: 58 mm of 3.2 mm pins). Operating-room seed 4, view 1 (AP):
+# two retractor blades seen edge-on either side of the plateau, 26 widths apart, parallel
+# and a pin wide, were taken for the pins, which showed as stubs between them.
+_PAIR_MOST_APART_WIDTHS = 18.0
 
 
 @dataclass(frozen=True)
@@ -623,13 +636,15 @@ class _PinWidths:
     most: float
     union_most: float
     least_behind: float  # two pins seen one behind the other: at least this wide
+    pair_apart_most: float  # the two pins' shadows: their axes at most this far apart
 
     @staticmethod
     def of(config: ContourConfig, expected_px: float | None) -> _PinWidths:
         if expected_px is None:
             lo, hi = config.pin_width_px
-            return _PinWidths(lo, hi, _PIN_UNION_WIDTH * hi, hi)
-        return _PinWidths(*(share * expected_px for share in _EXPECTED_WIDTH_SHARES))
+            return _PinWidths(lo, hi, _PIN_UNION_WIDTH * hi, hi, _PAIR_MOST_APART_WIDTHS * 0.5 * (lo + hi))
+        least, most, union_most, least_behind = (share * expected_px for share in _EXPECTED_WIDTH_SHARES)
+        return _PinWidths(least, most, union_most, least_behind, _PAIR_MOST_APART_WIDTHS * expected_px)
 
     def one_pin(self, width: float) -> bool:
         return self.least <= width <= self.most
