@@ -169,14 +169,16 @@ def pin_divergence(d: SolveDiagnostics, limits: GateLimits) -> str | None:
     it passes, at 4.2-5.7 sd it is still refused). A turn the views do resolve is a wrong
     pose however flat (surgeon's views seed 14: 4.4 deg within the plane, 10.6 sd, the
     plane 4.9 deg off), unless every view of a solve held to the encoders sees the plane
-    edge-on (:func:`edge_on_plane_confirmed`)."""
+    edge-on (:func:`edge_on_plane_confirmed`). No turn past ``max_excused_turn_deg`` is
+    excused: pins pointing across each other are a wrong pose, not an unresolved one."""
     divergence, limit_deg = d.pin_divergence, limits.max_pin_divergence_deg
     if divergence.out_of_plane > limit_deg:
         return (f"the pins are {divergence.total:.1f} deg from parallel ({divergence.out_of_plane:.1f} deg "
                 f"across their plane > {limit_deg:g} deg): the cutting block holds them parallel, "
                 f"so a pin's pose is wrong")
-    unresolved = (edge_on_plane_confirmed(d, limits)
-                  or divergence.in_plane <= limits.max_unresolved_turn_sds * divergence.in_plane_sd)
+    unresolved = divergence.in_plane <= limits.max_excused_turn_deg and (
+        edge_on_plane_confirmed(d, limits)
+        or divergence.in_plane <= limits.max_unresolved_turn_sds * divergence.in_plane_sd)
     if divergence.total > limit_deg and not unresolved:
         return (f"the pins are {divergence.total:.1f} deg from parallel (> {limit_deg:g} deg): "
                 f"the cutting block holds them parallel, so a pin's pose is wrong")

@@ -90,6 +90,10 @@ class GateLimits:
     # Beyond it, a turn within the pins' plane still passes up to this many of its standard
     # deviations: the views do not resolve it (gates.pin_divergence).
     max_unresolved_turn_sds: float = 4.0
+    # Nor is a turn within the plane past this excused, whatever the views resolve: right
+    # solves of pins seen edge-on left them 25-33 deg apart (surgeon's views seeds 16, 27),
+    # a wrong one 66 deg, its plane 1.3 deg off (seed 14; docs/realism.md, 31st pass).
+    max_excused_turn_deg: float = 45.0
     # A view whose source lies within this of the pins' plane sees it edge-on: where every
     # view does, in a solve held to the encoders' motion, nothing resolves the pins' turn
     # within that plane, nor does the plane depend on it (gates.edge_on_plane_confirmed).

@@ -528,6 +528,12 @@ def test_pins_that_are_not_parallel_are_named(phantom_plan):
     assert gates.pin_divergence(edge_on, limits) is None
     assert gates.pin_divergence(replace(edge_on, residual_rms={}), limits) is not None
     assert gates.pin_divergence(replace(edge_on, pins_plane_elevation_deg=3.0), limits) is not None
+    # Pins pointing across each other are no unresolved turn, edge-on or not (a solve of
+    # surgeon's views seed 14 measured 1.3 deg off with pin 1 turned 66 deg in the plane).
+    across_each_other = diagnose(problem, turned(normal, 66.0), [])
+    far = replace(across_each_other, pins_plane_elevation_deg=1.0, residual_rms={"E_odo": 5.0},
+                  pin_divergence=across_each_other.pin_divergence._replace(in_plane_sd=30.0))
+    assert "66.0 deg from parallel" in (gates.pin_divergence(far, limits) or "")
 
 
 @pytest.mark.system
