@@ -501,7 +501,7 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             a, b = fitted[i][0], fitted[j][0]
             # Across for parallel bars (pins in line lie far apart along), between the
             # centres for converging ones (a stub's axis says little).
-            apart = np.linalg.norm(b.centre - a.centre) if converging else abs((b.centre - a.centre) @ a.across)
+            apart = np.linalg.norm(b.centre - a.centre) if converging else _off_axis(a, b)
             if apart > widths.pair_apart_most:
                 continue
             if converging:
@@ -858,7 +858,8 @@ def _split_notched(labels: np.ndarray, mask: np.ndarray, count: int, good: np.nd
         notch = (cv2.morphologyEx(shadow, cv2.MORPH_CLOSE, disk) > 0) & (shadow == 0)
         found, notches, stats, _ = cv2.connectedComponentsWithStats(notch.astype(np.uint8), connectivity=8)
         largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA])) if found > 1 else 0
-        if not largest or stats[largest, cv2.CC_STAT_AREA] < least_length:  # a pixel a px at least
+        # A slit a pixel wide has as many pixels as it is long: fewer, it is too short.
+        if not largest or stats[largest, cv2.CC_STAT_AREA] < least_length:
             continue
         ys, xs = np.nonzero(notches == largest)
         slit = _fit_bar(np.column_stack([xs, ys]).astype(float))
