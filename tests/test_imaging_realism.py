@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -116,7 +117,7 @@ def test_polarity_comes_from_the_content_of_flat_panel_and_processed_frames(clea
 
 
 def test_each_nuisance_is_a_seedable_option_and_femur_flexion_swings_backwards(phantom_plan):
-    assert set(OperatingRoom.everything().names) == set(NUISANCES)
+    assert set(OperatingRoom.everything().names) == set(NUISANCES) - {"unsharpness"}
     with pytest.raises(ValueError, match="unknown nuisance"):
         OperatingRoom.only("fog")
     with pytest.raises(ValueError, match=r"\['fog'\]"):
@@ -275,7 +276,7 @@ def test_simulate_writes_operating_room_frames_with_truth_and_the_patient_given(
     assert main(["simulate", "--out", str(out), "--images", "--scene", "operating-room", "--seed", "4",
                  "--patient-id", "OR-17", "--patient-name", "ROE^RICHARD"]) == 0
     truth = json.loads((out / "truth_silhouettes.json").read_text())
-    assert set(truth["nuisances"]) == set(NUISANCES)
+    assert set(truth["nuisances"]) == set(OperatingRoom.everything().names)
     assert all("hidden" in view for view in truth["views"])
     ds = pydicom.dcmread(out / "frames" / "view1.dcm")
     assert ds.PatientID == "OR-17" and str(ds.PatientName) == "ROE^RICHARD"
@@ -439,6 +440,26 @@ def test_pins_turned_in_a_plane_one_view_sees_at_a_slant_are_not_measured():
     was measured 0.88 deg off in STR)."""
     result = realism_case(("real", "views", 27, (1,), str(SHARED_DATA)))["levels"][1]
     assert result["status"] == "refused", result
+
+
+def test_the_detectors_unsharpness_blurs_the_frame_and_leaves_the_other_draws(phantom_plan, scene):
+    """The unsharpness nuisance draws the detector's blur (0.7-2.0 px) from the case's own
+    stream after every other draw, so a scene with it differs from one without only in how
+    sharp its frames are; seed 9 draws the most blur of seeds 0-29 (2.0 px), and its
+    frames are measured."""
+    blurred, sharp = OperatingRoom.only("unsharpness").draw(9), OperatingRoom().draw(9)
+    assert blurred.detector_blur_px == pytest.approx(2.0, abs=0.01)
+    assert blurred.flexion_deg == sharp.flexion_deg and blurred.photons == sharp.photons
+    assert blurred.params(XRayParams()).detector_blur_px == blurred.detector_blur_px
+    assert sharp.params(XRayParams()).detector_blur_px == XRayParams().detector_blur_px
+    fine = []
+    for room in (OperatingRoom(), OperatingRoom.only("unsharpness")):
+        _, frames = _room_frames(phantom_plan, scene, room, 9)
+        image = frames[0].radiograph.image[312:712, 312:712].astype(np.float32)  # inside the field
+        fine.append(float(np.std(cv2.Laplacian(image, cv2.CV_32F))))
+    assert fine[1] < 0.5 * fine[0]
+    result = realism_case(("phantom", "unsharpness", 9, (1,), str(SHARED_DATA)))["levels"][1]
+    assert result["status"] == "success", result
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
