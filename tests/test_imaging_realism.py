@@ -333,6 +333,25 @@ def test_a_log_stored_frame_whose_noise_8_bits_quantise_away_is_read_from_its_sp
     assert 1 / 1.6 < np.polyfit(truth[leg], A[leg], 1)[0] < 1.6
 
 
+def test_a_raw_frame_whose_noise_a_blurring_detector_smooths_below_a_grey_level_stays_linear(clean_frames):
+    """A worn intensifier blurs 1.5-2 px: a raw frame's quantum noise is then smoothed to
+    under one grey level, where its SD (a median of whole quarter levels) moves in steps
+    and its variance is no longer linear in the level (the unsharpness scene's frames were
+    read as processed, a plateau's band at three times its attenuation). Noise under one
+    stored level whose variance still rises with the level, as the quanta's does, is a raw
+    frame's: it is read as linear, its attenuation as the sharp frame's."""
+    raw = clean_frames[0]
+    centre, radius, outside, sign, _ = field_of_view(raw, "auto")
+    v, u = np.mgrid[0:raw.shape[0], 0:raw.shape[1]]
+    lit = np.hypot(u - centre[0], v - centre[1]) < radius - 10
+    truth, _ = frame_attenuation(raw, lit, outside, sign)
+    blurred = np.round(cv2.GaussianBlur(raw.astype(np.float32), (0, 0), 1.8)).astype(raw.dtype)
+    A, response = frame_attenuation(blurred, lit, outside, sign)
+    assert response == "linear"
+    leg = lit & (truth > np.percentile(truth[lit], 30)) & (truth < np.percentile(truth[lit], 97))
+    assert np.polyfit(truth[leg].astype(float), A[leg].astype(float), 1)[0] == pytest.approx(1.0, abs=0.05)
+
+
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 @pytest.mark.parametrize(("seed", "least_coverage"), [(2, 0.6), (3, 0.6), (23, 0.55)])
 def test_a_log_processed_frame_yields_most_of_the_visible_outline(phantom_plan, scene, seed, least_coverage):

@@ -12,9 +12,11 @@ by the C-arm's window) is fitted for the common logarithmic response, under whic
 noise's SD is inversely proportional to ``sqrt(I)``.
 
 A frame whose noise variance is linear in the grey level (raw frames, scatter added, low
-dose) is linear in the quanta and left to the exact ``-log`` of its signal, unless that
-spans far less attenuation than any knee frame: then its noise said nothing (8 bits
-quantise a log response's away) and it is read as log-stored (:func:`frame_attenuation`).
+dose), or rises with it below one stored level (a blurring detector's raw frames, whose
+noise the levels' rounding makes stepwise), is linear in the quanta and left to the exact
+``-log`` of its signal, unless that spans far less attenuation than any knee frame: then
+its noise said nothing (8 bits quantise a log response's away) and it is read as
+log-stored (:func:`frame_attenuation`).
 """
 
 from __future__ import annotations
@@ -39,6 +41,12 @@ _FLOOR_SHARE = 0.05
 # at least the first (the bone alone adds more; simulated frames, linear or linearised from
 # their noise: 0.96-5.5); idealised frames span the second (2.3-2.4).
 _LEAST_SPREAD = 0.9
+# Under this many of its stored grey levels a frame's noise shows its rounding more than
+# the quanta: the noise's SD, a median of whole quarter levels, moves in steps. A detector
+# that blurs 1.5-2 px (a worn intensifier) smooths a raw frame's noise to 0.4-0.8 levels,
+# and its variance, still rising with the level as the quanta's, is no longer linear in
+# it (R^2 0.69-0.83): such a frame is raw (a log response's noise falls with the level).
+_LEAST_NOISE_LEVELS = 1.0
 _TYPICAL_SPREAD = 2.3
 
 
@@ -100,7 +108,7 @@ def linearised_attenuation(image: np.ndarray, valid: np.ndarray, sign: int) -> n
     fit = np.polyfit(g, variance, 1)
     residual = variance - np.polyval(fit, g)
     r2 = 1.0 - float(residual @ residual) / max(float(((variance - variance.mean()) ** 2).sum()), 1e-12)
-    if fit[0] > 0 and r2 >= _LINEAR_R2:
+    if fit[0] > 0 and (r2 >= _LINEAR_R2 or sd.max() < _LEAST_NOISE_LEVELS * _grey_step(x, valid)):
         return None
     root = np.concatenate([[0.0], np.cumsum(np.diff(g) * 0.25 * (1.0 / sd[1:] + 1.0 / sd[:-1]))])
     k, offset = np.linalg.lstsq(np.column_stack([1.0 / sd, -np.ones_like(sd)]), root, rcond=None)[0]
@@ -112,6 +120,14 @@ def linearised_attenuation(image: np.ndarray, valid: np.ndarray, sign: int) -> n
     s = np.where(x < g[0], root[0] + (x - g[0]) * low, s)
     s = np.where(x > g[-1], root[-1] + (x - g[-1]) * high, s)
     return (-2.0 * np.log(np.maximum(s + floor, 0.5 * floor))).astype(np.float32)
+
+
+def _grey_step(x: np.ndarray, valid: np.ndarray) -> float:
+    """The step between the frame's stored grey levels (1 for whole levels, 257 for 8 bits
+    spread over 16; near 0 for a frame of real numbers): the least gap between the
+    distinct levels of a sample of the field."""
+    levels = np.unique(x[valid][::31])
+    return float(np.min(np.diff(levels))) if len(levels) > 1 else 0.0
 
 
 def frame_attenuation(image: np.ndarray, valid: np.ndarray, outside: float, sign: int
