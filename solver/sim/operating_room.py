@@ -66,8 +66,8 @@ NUISANCES = ("femur", "patella", "retractors", "marker", "shutters", "dose", "sc
 # XRayParams.detector_blur_px.
 _UNSHARPNESS_PX = (0.7, 2.0)
 # Nuisances not yet in the operating-room scene: with the unsharpness in it, the scene's
-# pins seen end-on as stubs (seed 8, view 1) are no longer paired and seed 17's view 2 no
-# longer has its pins named (docs/realism.md, thirty-second pass).
+# pins seen end-on as stubs (seed 8, view 1) and seed 17's view 2 no longer have their pins
+# labelled right (docs/realism.md, thirty-second pass).
 _NOT_YET_IN_THE_ROOM = ("unsharpness",)
 
 _MU_LEAD_LINE = 6.0  # line integral of a lead letter 1.5 mm thick: opaque
