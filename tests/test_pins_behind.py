@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from slamtka.sim.simulate import default_camera
 from slamtka.solver.imaging.contours import (
     ONE_BAR_ONE_WIDE,
     ONE_BAR_TWO_WIDE,
     ContourConfig,
+    ExtractedContours,
     _PinWidths,
     _split_one,
 )
 from slamtka.solver.imaging.edges import outline_with_normals
+from slamtka.solver.observations import ViewObservation
 
 _EXPECTED_WIDTH_PX = 20.0
 _LEAST_LENGTH_PX = 250.0  # 0.4 of the ~600 px the initial pose foresees: longer than half the bar
@@ -72,3 +75,22 @@ def test_a_bar_wider_only_where_pins_in_line_overlap_is_not_both_pins():
     widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
     split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
     assert not isinstance(split, tuple) or split[1] != "behind"
+
+
+def _observed(overlap: str) -> ViewObservation:
+    """The solver's view of a split bar: pin 1 its left half, pin 2 its right half."""
+    left = np.column_stack([np.arange(50.0, 300.0), np.full(250, 90.0)])
+    right = np.column_stack([np.arange(300.0, 550.0), np.full(250, 90.0)])
+    found = ExtractedContours(np.zeros((0, 2)), left, right, {"pins_overlap": overlap})
+    return found.observation("v", default_camera(), lambda p: p, lambda p: p)
+
+
+def test_a_bar_cut_in_its_middle_is_pooled_for_the_fit_to_share_out():
+    """Retractors with the surgeon's views, seed 8, view 2 (lateral): the pins lay exactly
+    one behind the other, one bar with no step, and its cut in the middle was a guess.
+    Given half each, pin 1 slid 33 mm along its axis and the case was measured 1.5 deg off:
+    the bar's edges go to the fit whole, as a bar both pins lie behind."""
+    pooled = _observed("coincident").pin_edges
+    assert pooled is not None and len(pooled) == 500
+    assert _observed("staggered").pin_edges is None  # steps say where each pin ends
+    assert _observed("apart").pin_edges is None

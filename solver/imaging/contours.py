@@ -136,6 +136,15 @@ class ContourConfig:
             raise ValueError(f"bone_reach_in_px must not be negative, got {self.bone_reach_in_px}")
 
 
+# How the pins' one bar was split where the split is a guess, not seen: its edges are pooled
+# for the fit to share out (ExtractedContours.observation). "coincident": no step on either
+# side, so the bar was cut in its middle, as if the pins lay end to end; pins lying exactly
+# one behind the other cast such a bar too, each over all of it (a lateral view between
+# retractor blades, retractors and surgeon's views seed 8, view 2): given half each, pin 1
+# slid 33 mm along its axis and turned the views with it, measured 1.5 deg off in CTR.
+_POOLED_OVERLAPS = ("behind", "coincident")
+
+
 @dataclass
 class ExtractedContours:
     """Contour pixels (N, 2) in raw (distorted) image coordinates, and how they were found."""
@@ -167,15 +176,18 @@ class ExtractedContours:
                                              (camera.width, camera.height), distort)
         contours = {label: undistort(points) if len(points) else points
                     for label, points in self.as_dict().items()}
-        # Pins seen one behind the other were given the one bar's edges each: pooled, the fit
-        # shares them out from the first solve on (fitted whole, the bar pulls each pin
-        # towards both pins' ends).
-        behind = self.diagnostics.get("pins_overlap") == "behind"
+        # Where the extraction could not say which part of one bar is which pin's, the bar's
+        # edges are pooled and the fit shares them out from the first solve on: pins seen one
+        # behind the other (given the whole bar each: fitted whole, it pulls each pin towards
+        # both pins' ends), and a bar with no step cut in its middle (the cut is a guess).
+        pooled = None
+        if self.diagnostics.get("pins_overlap") in _POOLED_OVERLAPS:
+            pooled = np.unique(np.vstack([contours["pin1"], contours["pin2"]]), axis=0)
         return ViewObservation(
             view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
                 self.bone_edge_search, distort=distort, undistort=undistort), pins_opaque=True,
-            pin_edges=contours["pin1"] if behind else None)
+            pin_edges=pooled)
 
 
 # -- pins ----------------------------------------------------------------------------------
