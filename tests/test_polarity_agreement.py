@@ -23,7 +23,16 @@ def test_a_frame_whose_polarity_could_not_be_told_is_tried_again_as_its_clear_pa
     """The real tibia's operating-room seed 18: view 1 showed no steel standing out and was
     not extracted; view 2 read "bright" clearly (and view 1, read so, shows both pins)."""
     assert agreed_polarity([None, _read("bright", True)]) == "bright"
-    assert agreed_polarity([None, _read("bright", False)]) is None  # nothing clear to go by
+
+
+def test_a_frame_whose_polarity_could_not_be_told_takes_its_partners_weak_reading():
+    """The operating room without the surgeon's views, seed 1: view 1, a processed
+    flat-panel frame with its pins off the centre, showed no steel standing out; view 2
+    read "dark" from weak cues only. Read so, view 1 shows both pins and the case measures.
+    Weak readings that disagree say nothing."""
+    assert agreed_polarity([None, _read("dark", False)]) == "dark"
+    assert agreed_polarity([None, _read("dark", False), _read("dark", False)]) == "dark"
+    assert agreed_polarity([None, _read("dark", False), _read("bright", False)]) is None
 
 
 def test_frames_that_agree_or_that_nothing_clear_contradicts_are_left_as_read():

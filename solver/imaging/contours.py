@@ -1599,13 +1599,19 @@ def agreed_polarity(extracted: Sequence[ExtractedContours | None]) -> str | None
     astray (view 2's periphery says "dark" four to ten times over the decisive level). A
     frame whose own polarity could not be told at all is read as they read too (the real
     tibia's operating-room seed 18, view 1: "no steel stands out", and the case was refused
-    before the solve)."""
+    before the solve), and, where none read it clearly, as the others agree it reads: a
+    weak reading beats none (seed 1 of the operating room at the standard views: a
+    processed flat-panel frame, its pins off the centre, whose partner read "dark" weakly;
+    read so it measures). Read wrongly, a frame's bone stage goes astray and the case is
+    refused as it would have been."""
     read = [f.diagnostics for f in extracted if f is not None]
     clear = {d.get("polarity") for d in read if d.get("polarity_decisive")}
+    unread = any(f is None for f in extracted)
+    if not clear and unread:
+        clear = {d.get("polarity") for d in read}
     if len(clear) != 1:
         return None
     polarity = clear.pop()
-    unread = any(f is None for f in extracted)
     return polarity if unread or any(d.get("polarity") != polarity for d in read) else None
 
 
