@@ -155,17 +155,3 @@ def test_two_pins_at_an_angle_touching_are_not_cut():
     count = _split_notched(labels, labels > 0, 3, np.array([False, True, True]), widths, ContourConfig())
     assert count == 3 and np.array_equal(labels, before)
 
-
-def test_pieces_of_one_bar_broken_where_something_crossed_it_are_not_the_pair():
-    """Operating-room seed 8, view 1, with the detector's unsharpness: a blade seen edge-on,
-    cut where another blade's bend crossed it, left two pieces in line 20 px apart, alike and
-    a pin wide. They were taken for the pins over the pins' own shadows, seen nearly end-on
-    and converging. Pins in line far apart along their axis are still a pair (above)."""
-    widths = _PinWidths.of(ContourConfig(), 22.0)
-
-    def piece(top: int, bottom: int) -> tuple[_Bar, np.ndarray]:
-        mask = np.zeros((700, 1000), bool)
-        mask[top:bottom, 762:778] = True  # 16 px wide
-        return _fit_bar(_pixels(mask)), _pixels(mask)
-
-    assert _parallel_pair([piece(240, 415), piece(435, 487)], widths) is None

@@ -136,15 +136,6 @@ class ContourConfig:
             raise ValueError(f"bone_reach_in_px must not be negative, got {self.bone_reach_in_px}")
 
 
-# How the pins' one bar was split where the split is a guess, not seen: its edges are pooled
-# for the fit to share out (ExtractedContours.observation). "coincident": no step on either
-# side, so the bar was cut in its middle, as if the pins lay end to end; pins lying exactly
-# one behind the other cast such a bar too, each over all of it (a lateral view between
-# retractor blades, retractors and surgeon's views seed 8, view 2): given half each, pin 1
-# slid 33 mm along its axis and turned the views with it, measured 1.5 deg off in CTR.
-_POOLED_OVERLAPS = ("behind", "coincident")
-
-
 @dataclass
 class ExtractedContours:
     """Contour pixels (N, 2) in raw (distorted) image coordinates, and how they were found."""
@@ -178,11 +169,18 @@ class ExtractedContours:
                     for label, points in self.as_dict().items()}
         # Where the extraction could not say which part of one bar is which pin's, the bar's
         # edges are pooled and the fit shares them out from the first solve on: pins seen one
-        # behind the other (given the whole bar each: fitted whole, it pulls each pin towards
-        # both pins' ends), and a bar with no step cut in its middle (the cut is a guess).
-        pooled = None
-        if self.diagnostics.get("pins_overlap") in _POOLED_OVERLAPS:
-            pooled = np.unique(np.vstack([contours["pin1"], contours["pin2"]]), axis=0)
+        # behind the other (fitted whole, the bar pulls each pin towards both pins' ends), and
+        # a bar with no step cut in its middle ("coincident"), as if the pins lay end to end.
+        # Pins exactly one behind the other cast such a bar too, each over all of it (a
+        # lateral view between retractor blades, retractors and surgeon's views seed 8, view
+        # 2): given half each, pin 1 slid 33 mm along its axis and turned the views with it,
+        # and the case was measured 1.5 deg off in CTR.
+        pooled, overlap = None, self.diagnostics.get("pins_overlap")
+        if overlap == "behind":
+            pooled = contours["pin1"]  # each pin was given the whole bar
+        elif overlap == "coincident":
+            both = np.vstack([contours["pin1"], contours["pin2"]])
+            pooled = both[np.sort(np.unique(both, axis=0, return_index=True)[1])]  # once each, in order
         return ViewObservation(
             view_id, camera, contours, dict(self.diagnostics.get("missing", {})), visible,
             None if self.bone_edge_search is None else replace(
@@ -524,8 +522,6 @@ def _parallel_pair(fitted: list[tuple[_Bar, np.ndarray]], widths: _PinWidths,
             elif angle <= _PAIR_MAX_ANGLE_DEG and not (stub[i] or stub[j]):
                 if not (straight[i] and straight[j]):
                     continue  # bands along a bone's edge, side by side, not pins
-                if _in_line(a, widths_px[i], b, widths_px[j], _PAIR_MAX_ANGLE_DEG):
-                    continue  # one bar broken where something crossed it, not two pins
                 bent = angle / _PAIR_MAX_ANGLE_DEG
             else:
                 continue
@@ -1127,11 +1123,9 @@ def _off_axis(a: _Bar, b: _Bar) -> float:
     return abs(float((shorter.centre - longer.centre) @ longer.across))
 
 
-def _in_line(a: _Bar, width_a: float, b: _Bar, width_b: float, max_angle_deg: float = _JOIN_MAX_ANGLE_DEG
-             ) -> bool:
-    """Whether two bars lie on one line, parallel (within ``max_angle_deg``), with a short
-    gap between their ends."""
-    if np.degrees(np.arccos(min(abs(float(a.direction @ b.direction)), 1.0))) > max_angle_deg:
+def _in_line(a: _Bar, width_a: float, b: _Bar, width_b: float) -> bool:
+    """Whether two bars lie on one line, parallel, with a short gap between their ends."""
+    if np.degrees(np.arccos(min(abs(float(a.direction @ b.direction)), 1.0))) > _JOIN_MAX_ANGLE_DEG:
         return False
     longer, shorter = (a, b) if a.half_length >= b.half_length else (b, a)
     gap = abs(float((shorter.centre - longer.centre) @ longer.direction)) - longer.half_length - shorter.half_length
