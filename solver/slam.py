@@ -427,6 +427,9 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     indistinct = gates.pins_in_line(d) or gates.shared_bar_unexplained(d, limits)
     if indistinct is not None:
         return _refused(problem, Why.PINS_INDISTINCT, indistinct, state, report, rms, start)
+    across = gates.pins_across_the_tibia([pin.R[:, 2] for pin in pins], plan.landmarks, limits)
+    if across is not None:
+        return _refused(problem, Why.GATE_FAILED, across, state, report, rms, start)
     too_close = gates.view_separation(d, limits)
     if too_close is not None:
         return _refused(problem, Why.VIEWS_TOO_CLOSE, too_close, state, report, rms, start)

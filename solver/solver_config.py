@@ -87,6 +87,10 @@ class GateLimits:
     max_pin_outline_p90_px: float = 60.0
     max_pin_graze_offset_mm: float = 0.8
     max_pin_divergence_deg: float = 3.0
+    # Pins drilled through a cutting block on the front of the tibia run within some 20 deg
+    # of its front-to-back axis (the simulator's: 17 deg at most); pins whose mean axis is
+    # further from it than this are other steel (gates.pins_across_the_tibia).
+    max_pin_from_anteroposterior_deg: float = 45.0
     # Beyond it, a turn within the pins' plane still passes up to this many of its standard
     # deviations: the views do not resolve it (gates.pin_divergence).
     max_unresolved_turn_sds: float = 4.0

@@ -513,14 +513,27 @@ def test_pins_exactly_in_line_in_a_lateral_view_are_refused_saying_so():
             "line, one behind the other, or the other is hidden)") in result["reason"]
 
 
+@pytest.mark.xfail(strict=True, reason="a known wrong answer, not yet refused: 2.2 deg off in CTR "
+                                        "(docs/realism.md, thirty-third pass)")
 def test_pins_one_behind_the_other_between_blades_are_not_measured_wrong():
     """Retractors with the surgeon's views, seed 8: in the lateral view the pins lie exactly
-    one behind the other between two blades, a bar with no step; cut in its middle, pin 1
-    was given the back half only, slid 33 mm along its axis, and the case was measured
-    1.5 deg off in CTR. Pooled for the fit, the bar says what it can (refused, as it is
-    now, or measured right)."""
+    one behind the other between two blades, a bar with no step. Cut in its middle, pin 1
+    was given the back half only, slid 33 mm along its axis, and the case was measured 1.5
+    deg off in CTR; pooled for the fit, pin 1 still slides 33 mm (the views turn with it,
+    E_odo 5.6 sigma RMS, a reported sigma of 0.21 deg) and it is measured 2.2 deg off."""
     result = realism_case(("phantom", "retractors+views", 8, (1,), str(SHARED_DATA)))["levels"][1]
     assert result["status"] in ("refused", "success"), result
+
+
+@pytest.mark.skipif(not (SHARED_DATA / "knee-smith2019" / "tibia-right.stl").is_file(),
+                    reason="shared real tibia absent")
+def test_retractor_blades_taken_for_the_pins_in_both_views_are_refused():
+    """The real tibia, retractors and surgeon's views seed 14: two pieces of blades in each
+    view triangulated to a parallel pair that fitted every gate, both 73-75 deg from the
+    tibia's front-to-back axis, and the case was measured 4.9 deg off in STR."""
+    result = realism_case(("real", "retractors+views", 14, (1,), str(SHARED_DATA)))["levels"][1]
+    assert result["status"] == "refused"
+    assert "from the tibia's front-to-back axis" in result["reason"]
 
 
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")

@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 
 from slamtka.sim.simulate import SimulationConfig, simulate_case
 from slamtka.solver import gates, optimizer, slam
+from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.diagnostics import PinOverlap, SolveDiagnostics, diagnose
 from slamtka.solver.gates import Why
 from slamtka.solver.geometry import Pose, rotation_about
@@ -1005,3 +1006,18 @@ def test_a_halo_taken_for_a_pin_is_left_out_once_the_pins_are_posed(phantom_plan
     kept = solve_joint(phantom_plan, views, case.initial,
                        SolverConfig(sampling=SamplingConfig(foreign_edge_px=None), global_searches=()))
     assert kept.status == "not_measured" and "pin1 edge points of view view2" in kept.reason
+
+
+def test_pins_running_across_the_tibia_are_other_steel():
+    """Pins drilled through the cutting block run front to back; retractor blades taken for
+    them in both views (the real tibia, retractors and surgeon's views seed 14) ran 73-75
+    deg from that axis. Their mean axis is read: a right solve of pins seen edge-on in every
+    view may leave one pin turned 37 deg within their plane (surgeon's views seed 16)."""
+    landmarks = Landmarks(np.zeros(3), np.array([0, 0, -370.0]), np.array([0, 1.0, 0]), "right")
+    limits = GateLimits()
+    turned = rotation_about(np.array([0, 0, 1.0]), np.radians(37.0)) @ np.array([0, -1.0, 0])
+    assert gates.pins_across_the_tibia([np.array([0, -1.0, 0]), turned], landmarks, limits) is None
+    assert gates.pins_across_the_tibia([np.array([0, 1.0, 0]), np.array([0, -1.0, 0])], landmarks, limits) is None
+    across = [rotation_about(np.array([0, 0, 1.0]), np.radians(74.0)) @ np.array([0, 1.0, 0])] * 2
+    why = gates.pins_across_the_tibia(across, landmarks, limits)
+    assert why is not None and "74 deg from the tibia's front-to-back axis" in why
