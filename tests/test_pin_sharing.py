@@ -132,12 +132,14 @@ def test_pins_in_line_and_on_each_other_in_every_view_are_not_shared_out():
 @pytest.mark.system
 @pytest.mark.skipif(not (MESHES / "femur-generic-right.stl").is_file(), reason="shared meshes absent")
 def test_a_case_refused_for_its_pins_names_is_not_tried_again_sharing_their_edges():
-    """The real tibia's idealised seed 3: the other naming fits as well (final cost 785
-    against 782) but is refused, and the bone does not settle the names, so the case is
-    refused. Sharing the touching pins' edges cannot say which pin is which across views (a
-    headed-pins case so retried was once measured 14 deg off); the refusal stands. (Surgeon's
-    views seed 12, refused so before, is now named by the encoders' motion.)"""
-    result = realism_case(("real", "idealised", 3, (1,), str(SHARED_DATA)))["levels"][1]
+    """The real tibia's seed 3 behind collimator shutters: the other naming fits as well
+    (final cost 558 against 528) but is refused, and the bone does not settle the names, so
+    the case is refused. Sharing the touching pins' edges cannot say which pin is which
+    across views (a headed-pins case so retried was once measured 14 deg off); the refusal
+    stands. (The idealised frames of that seed, refused so before, are measured since their
+    unstepped bar is shared from the start; surgeon's views seed 12 is named by the
+    encoders' motion.)"""
+    result = realism_case(("real", "shutters", 3, (1,), str(SHARED_DATA)))["levels"][1]
     assert result["status"] == "refused", result
     assert "cannot be told apart" in result["reason"]
 

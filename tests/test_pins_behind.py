@@ -95,17 +95,3 @@ def test_a_bar_cut_in_its_middle_is_pooled_for_the_fit_to_share_out():
     assert _observed("staggered").pin_edges is None  # steps say where each pin ends
     assert _observed("apart").pin_edges is None
 
-
-def test_a_bent_shadow_is_not_cut_into_two_pins_in_line():
-    """Operating-room seed 17, view 2, with the detector's unsharpness: a retractor blade's
-    shaft and its bend made one shadow, larger than the pins', with no step on its sides;
-    cut in its middle, it was taken for both pins. Two pins in line are straight."""
-    labels = np.zeros((500, 700), np.int32)
-    for x in range(50, 620):
-        bend = 0.0 if x < 330 else 0.6 * (x - 330)  # 31 deg after the bend
-        labels[int(200 + bend) - 10:int(200 + bend) + 10, x] = 1
-    edges, normals = outline_with_normals(labels > 0, 10)
-    widths = _PinWidths.of(ContourConfig(), _EXPECTED_WIDTH_PX)
-    split = _split_one(labels, np.array([1]), edges, normals, widths, _LEAST_LENGTH_PX, ContourConfig())
-    assert not isinstance(split, tuple)
-    assert split != ONE_BAR_ONE_WIDE  # nor is it said to be a pin's bar

@@ -949,10 +949,7 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
     view), else None. ``stepped_only``: only a split that steps on the sides or heads locate
     ("staggered") into two bars each a pin wide is taken (a piece of two pins' union between
     blades, one part as wide as both, split so, measured operating-room seed 23 8 deg off,
-    refused only by a fit gate at its limit). A shadow whose sides neither step nor lie on
-    straight lines is not cut in its middle: two pins in line are straight, a bent blade is
-    not (operating-room seed 17, view 2, with the detector's unsharpness: a blade's bend,
-    merged with its shaft into one shadow larger than the pins', was cut as pins)."""
+    refused only by a fit gate at its limit)."""
     h, w = labels.shape
     at = np.clip(np.round(edges).astype(int), 0, [w - 1, h - 1])
     behind: tuple[list[_Bar], str, np.ndarray] | None = None
@@ -969,15 +966,15 @@ def _split_one(labels: np.ndarray, shadows: np.ndarray, edges: np.ndarray, norma
         bars, overlap = _split_union(edges[mine], normals[mine], config.pin_min_step_px, head_points)
         bar_widths = [_edge_width(bar, edges[mine]) for bar in bars]
         stepped = overlap == "staggered" and all(map(widths.one_pin, bar_widths))
-        whole = _fit_bar(edges[mine])
-        pixels = np.argwhere(in_shadow)[:, ::-1].astype(float)
-        straight = _side_wander(whole, pixels) <= _PIN_SIDE_WANDER_PX
         if (float(np.mean(bar_widths)) <= widths.most and min(2.0 * bar.half_length for bar in bars) >= least_length
-                and (stepped or not stepped_only) and (straight or overlap != "coincident")):
+                and (stepped or not stepped_only)):
             return bars, overlap, edges[mine]
+        whole = _fit_bar(edges[mine])
         whole_width = _edge_width(whole, edges[mine])
-        if seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length and straight:
-            seen = ONE_BAR_ONE_WIDE
+        if seen is None and widths.one_pin(whole_width) and 2.0 * whole.half_length >= least_length:
+            pixels = np.argwhere(in_shadow)[:, ::-1].astype(float)
+            if _side_wander(whole, pixels) <= _PIN_SIDE_WANDER_PX:
+                seen = ONE_BAR_ONE_WIDE
         if behind is None and widths.two_behind(whole_width):
             seen = ONE_BAR_TWO_WIDE
             thirds = _widths_along(whole, edges[mine])
