@@ -24,9 +24,9 @@ from slamtka.solver.pin_naming import PIN_OUT_OF_BONE_MM
 from slamtka.solver.solver_config import GateLimits
 
 __all__ = ["Why", "angle_uncertainty", "contour_misfit", "edge_on_plane_confirmed", "hidden_outline",
-           "input_refusal", "odometry_misfit", "outline_misfit", "pin_divergence", "pin_out_of_bone", "pins_across_the_tibia",
-           "pins_in_line",
-           "pins_overlap", "shared_bar_unexplained", "sought_edges_missing", "view_separation"]
+           "input_refusal", "odometry_misfit", "outline_misfit", "pin_divergence", "pin_out_of_bone",
+           "pins_across_the_tibia", "pins_in_line", "pins_overlap", "shared_bar_unexplained",
+           "sought_edges_missing", "view_separation"]
 
 
 class Why(StrEnum):

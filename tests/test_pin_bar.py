@@ -154,4 +154,3 @@ def test_two_pins_at_an_angle_touching_are_not_cut():
     widths = _PinWidths.of(ContourConfig(), 20.0)
     count = _split_notched(labels, labels > 0, 3, np.array([False, True, True]), widths, ContourConfig())
     assert count == 3 and np.array_equal(labels, before)
-

@@ -86,12 +86,11 @@ def _observed(overlap: str) -> ViewObservation:
 
 
 def test_a_bar_cut_in_its_middle_is_pooled_for_the_fit_to_share_out():
-    """Retractors with the surgeon's views, seed 8, view 2 (lateral): the pins lay exactly
-    one behind the other, one bar with no step, and its cut in the middle was a guess.
-    Given half each, pin 1 slid 33 mm along its axis and the case was measured 1.5 deg off:
-    the bar's edges go to the fit whole, as a bar both pins lie behind."""
+    """A bar with no step is cut in its middle as if the pins lay end to end, but they may
+    lie each over all of it (retractors with the surgeon's views, seed 8, view 2): the cut
+    is a guess, and the bar's edges go to the fit whole, once each, as a bar both pins lie
+    behind. Pins whose steps or separate shadows say where each lies are not pooled."""
     pooled = _observed("coincident").pin_edges
     assert pooled is not None and len(pooled) == 500
     assert _observed("staggered").pin_edges is None  # steps say where each pin ends
     assert _observed("apart").pin_edges is None
-

@@ -170,11 +170,10 @@ class ExtractedContours:
         # Where the extraction could not say which part of one bar is which pin's, the bar's
         # edges are pooled and the fit shares them out from the first solve on: pins seen one
         # behind the other (fitted whole, the bar pulls each pin towards both pins' ends), and
-        # a bar with no step cut in its middle ("coincident"), as if the pins lay end to end.
-        # Pins exactly one behind the other cast such a bar too, each over all of it (a
-        # lateral view between retractor blades, retractors and surgeon's views seed 8, view
-        # 2): given half each, pin 1 slid 33 mm along its axis and turned the views with it,
-        # and the case was measured 1.5 deg off in CTR.
+        # a bar with no step cut in its middle ("coincident"), as if the pins lay end to end;
+        # pins exactly one behind the other cast such a bar too, each over all of it. Shared
+        # by the fit, seed 3 of the phantom's scenes (pins end to end) is measured 0.13-0.33
+        # deg off in CTR where its halves gave 0.40-0.42 (docs/realism.md, thirty-third pass).
         pooled, overlap = None, self.diagnostics.get("pins_overlap")
         if overlap == "behind":
             pooled = contours["pin1"]  # each pin was given the whole bar
