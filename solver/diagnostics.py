@@ -9,7 +9,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from slamtka.solver.geometry import Pose, largest_angle_deg, row_norms
-from slamtka.solver.measurement import PinDivergence, pin_axis_points, pin_divergence, plane_elevations_deg
+from slamtka.solver.measurement import (
+    PinDivergence,
+    pin_axis_points,
+    pin_divergence,
+    pins_from_anteroposterior_deg,
+    plane_elevations_deg,
+)
 from slamtka.solver.observations import LABELS
 from slamtka.solver.optimizer import RobustLoss, State, Term, whitened
 from slamtka.solver.problem import InitialGuess, JointProblem
@@ -96,6 +102,7 @@ class SolveDiagnostics:
     # Where the bone contours were sought near the model's outline: per view, the share of
     # its visible outline at the solved poses along which the frame shows the bone's edge.
     sought_edge_shares: tuple[tuple[str, float], ...] = ()
+    pins_from_anteroposterior_deg: float = 0.0  # the pins' mean axis from the tibia's front-to-back axis
 
 
 # How close to the solved outline an edge counts as the bone's (px): the footprint's own
@@ -203,7 +210,8 @@ def diagnose(problem: JointProblem, state: State, terms: list[Term]) -> SolveDia
         rms["E_rp"] * problem.config.noise.sigma_px if "E_rp" in rms else None,
         strays, problem.config.sampling.max_ray_miss_mm, grazes,
         outline_fits(problem, state, LABELS), divergence, elevation,
-        view_separation_deg(views), pin_overlaps(problem, state), _sought_edge_shares(problem, state))
+        view_separation_deg(views), pin_overlaps(problem, state), _sought_edge_shares(problem, state),
+        pins_from_anteroposterior_deg(pins, problem.plan.landmarks))
 
 
 def _sought_edge_shares(problem: JointProblem, state: State) -> tuple[tuple[str, float], ...]:

@@ -12,12 +12,8 @@ global search (:func:`solver.slam.solve_joint`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from enum import StrEnum
 
-import numpy as np
-
-from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.diagnostics import InputDiagnostics, OutlineFit, SolveDiagnostics
 from slamtka.solver.observations import PIN_LABELS
 from slamtka.solver.pin_naming import PIN_OUT_OF_BONE_MM
@@ -231,11 +227,9 @@ def pin_out_of_bone(out_of_bone_mm: float | None) -> str | None:
             "pin's pose is wrong")
 
 
-def pins_across_the_tibia(pin_axes: Sequence[np.ndarray], landmarks: Landmarks, limits: GateLimits
-                          ) -> str | None:
+def pins_across_the_tibia(d: SolveDiagnostics, limits: GateLimits) -> str | None:
     """Why the solved pins cannot be the block's, or None: their mean axis runs further
     from the tibia's front-to-back axis than ``max_pin_from_anteroposterior_deg``.
-    ``pin_axes``: unit axes in the tibia frame.
 
     The cutting block sits on the front of the tibia and its pins are drilled through it
     towards the back: within some 20 deg of that axis (the block turned about the tibia's
@@ -243,15 +237,9 @@ def pins_across_the_tibia(pin_axes: Sequence[np.ndarray], landmarks: Landmarks, 
     triangulate to a parallel pair that fits every other gate (the real tibia, retractors
     and surgeon's views seed 14: both "pins" 73-75 deg from that axis, running nearly from
     side to side, measured 4.9 deg off in STR). The pins' mean axis is read, not each
-    pin's: where the views see the pins' plane edge-on, a pin's turn within it is not
-    resolved, and a right solve may leave one pin 37 deg from that axis and the other 5
-    (surgeon's views seed 16; gates.pin_divergence)."""
-    first, second = (np.asarray(axis, float) / np.linalg.norm(axis) for axis in pin_axes)
-    mean = first + np.sign(float(first @ second)) * second
-    anteroposterior = landmarks.T_tibia_anat().R[:, 1]
-    cosine = abs(float(mean @ anteroposterior)) / float(np.linalg.norm(mean))
-    off_deg = float(np.degrees(np.arccos(min(cosine, 1.0))))
-    limit_deg = limits.max_pin_from_anteroposterior_deg
+    pin's: a right solve of pins seen edge-on in every view may leave one pin 37 deg from
+    that axis and the other 5 (surgeon's views seed 16)."""
+    off_deg, limit_deg = d.pins_from_anteroposterior_deg, limits.max_pin_from_anteroposterior_deg
     if off_deg <= limit_deg:
         return None
     return (f"the solved pins run {off_deg:.0f} deg from the tibia's front-to-back axis (> {limit_deg:g} deg): "

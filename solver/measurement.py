@@ -18,7 +18,7 @@ from slamtka.solver.anatomy import Landmarks, resection_angles
 from slamtka.solver.geometry import Pose
 
 __all__ = ["PinDivergence", "ResectionPlane", "angle_covariance", "fit_resection_plane",
-           "pin_divergence", "plane_elevations_deg", "with_in_plane_sd"]
+           "pin_divergence", "pins_from_anteroposterior_deg", "plane_elevations_deg", "with_in_plane_sd"]
 
 _AXIS_SAMPLES = 16
 
@@ -71,17 +71,33 @@ class PinDivergence(NamedTuple):
     in_plane_sd: float = float("nan")
 
 
-def pin_divergence(pins: tuple[Pose, Pose] | list[Pose], pin_length_mm: float) -> PinDivergence:
-    """The pins' divergence from parallel, whole and split by their plane."""
+def _pin_axes(pins: tuple[Pose, Pose] | list[Pose]) -> list[np.ndarray]:
+    """The pins' unit axes (pin frame +z) in the tibia frame, the second pointing as the first."""
     axes = [T.R[:, 2] for T in pins]
     if axes[0] @ axes[1] < 0:
         axes[1] = -axes[1]
+    return axes
+
+
+def pin_divergence(pins: tuple[Pose, Pose] | list[Pose], pin_length_mm: float) -> PinDivergence:
+    """The pins' divergence from parallel, whole and split by their plane."""
+    axes = _pin_axes(pins)
     _, normal = _plane_through(pins, pin_length_mm)
     tilts = [np.arcsin(np.clip(axis @ normal, -1.0, 1.0)) for axis in axes]
     flat = [axis - (axis @ normal) * normal for axis in axes]
     turn = np.arctan2(abs(normal @ np.cross(flat[0], flat[1])), flat[0] @ flat[1])
     total = np.arccos(np.clip(axes[0] @ axes[1], -1.0, 1.0))
     return PinDivergence(*(float(np.degrees(a)) for a in (total, abs(tilts[0] - tilts[1]), turn)))
+
+
+def pins_from_anteroposterior_deg(pins: tuple[Pose, Pose] | list[Pose], landmarks: Landmarks) -> float:
+    """How far (deg) the pins' mean axis lies from the tibia's front-to-back axis (the
+    anatomical +y, either way along it). The mean, not each pin's: where the views see the
+    pins' plane edge-on, a pin's turn within it is not resolved (gates.pin_divergence)."""
+    mean = np.sum(_pin_axes(pins), axis=0)
+    anteroposterior = landmarks.T_tibia_anat().R[:, 1]
+    cosine = abs(float(mean @ anteroposterior)) / float(np.linalg.norm(mean))
+    return float(np.degrees(np.arccos(min(cosine, 1.0))))
 
 
 def plane_elevations_deg(pins: list[Pose], T_cam_tibia: list[Pose], pin_length_mm: float) -> list[float]:

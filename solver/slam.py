@@ -427,7 +427,7 @@ def _judged(problem: JointProblem, state: State, terms: list[Term], fine: SolveR
     indistinct = gates.pins_in_line(d) or gates.shared_bar_unexplained(d, limits)
     if indistinct is not None:
         return _refused(problem, Why.PINS_INDISTINCT, indistinct, state, report, rms, start)
-    across = gates.pins_across_the_tibia([pin.R[:, 2] for pin in pins], plan.landmarks, limits)
+    across = gates.pins_across_the_tibia(d, limits)
     if across is not None:
         return _refused(problem, Why.GATE_FAILED, across, state, report, rms, start)
     too_close = gates.view_separation(d, limits)

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from slamtka.sim.simulate import SimulationConfig, simulate_case
-from slamtka.solver import gates, optimizer, slam
+from slamtka.solver import gates, measurement, optimizer, slam
 from slamtka.solver.anatomy import Landmarks
 from slamtka.solver.diagnostics import PinOverlap, SolveDiagnostics, diagnose
 from slamtka.solver.gates import Why
@@ -1008,6 +1008,17 @@ def test_a_halo_taken_for_a_pin_is_left_out_once_the_pins_are_posed(phantom_plan
     assert kept.status == "not_measured" and "pin1 edge points of view view2" in kept.reason
 
 
+def _pins_along(*axes: np.ndarray) -> list[Pose]:
+    """Pins whose axes (pin frame +z, tibia frame) are ``axes``."""
+    poses = []
+    for axis in axes:
+        z = axis / np.linalg.norm(axis)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        poses.append(Pose(np.column_stack([x, np.cross(z, x), z]), np.zeros(3)))
+    return poses
+
+
 def test_pins_running_across_the_tibia_are_other_steel():
     """Pins drilled through the cutting block run front to back; retractor blades taken for
     them in both views (the real tibia, retractors and surgeon's views seed 14) ran 73-75
@@ -1015,9 +1026,14 @@ def test_pins_running_across_the_tibia_are_other_steel():
     view may leave one pin turned 37 deg within their plane (surgeon's views seed 16)."""
     landmarks = Landmarks(np.zeros(3), np.array([0, 0, -370.0]), np.array([0, 1.0, 0]), "right")
     limits = GateLimits()
+
+    def why(pins: list[Pose]) -> str | None:
+        figure = measurement.pins_from_anteroposterior_deg(pins, landmarks)
+        return gates.pins_across_the_tibia(replace(_with_rms({}), pins_from_anteroposterior_deg=figure), limits)
+
     turned = rotation_about(np.array([0, 0, 1.0]), np.radians(37.0)) @ np.array([0, -1.0, 0])
-    assert gates.pins_across_the_tibia([np.array([0, -1.0, 0]), turned], landmarks, limits) is None
-    assert gates.pins_across_the_tibia([np.array([0, 1.0, 0]), np.array([0, -1.0, 0])], landmarks, limits) is None
-    across = [rotation_about(np.array([0, 0, 1.0]), np.radians(74.0)) @ np.array([0, 1.0, 0])] * 2
-    why = gates.pins_across_the_tibia(across, landmarks, limits)
-    assert why is not None and "74 deg from the tibia's front-to-back axis" in why
+    assert why(_pins_along(np.array([0, -1.0, 0]), turned)) is None
+    assert why(_pins_along(np.array([0, 1.0, 0]), np.array([0, -1.0, 0]))) is None
+    across = rotation_about(np.array([0, 0, 1.0]), np.radians(74.0)) @ np.array([0, 1.0, 0])
+    refusal = why(_pins_along(across, across))
+    assert refusal is not None and "74 deg from the tibia's front-to-back axis" in refusal
